@@ -1,0 +1,1 @@
+"""Learners: one readable training loop each."""

@@ -1,0 +1,121 @@
+"""Behaviour cloning: maximum likelihood of expert actions.
+
+A Gaussian policy, feed-forward (current observation only) or recurrent
+(belief over the whole history), is fitted to the demonstrations by
+minimising the negative log-likelihood of the expert's actions.  Recurrent
+policies train on whole episodes from a zero initial state, exactly as they
+run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from pomil.config import option, to_dict
+from pomil.data import Demonstrations
+from pomil.errors import PomilError
+from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+from pomil.training import (
+    RunLogger, load_checkpoint, resolve_device, restore_rng, rng_state, save_checkpoint,
+    seed_everything, write_json,
+)
+
+
+@dataclass(frozen=True)
+class BCConfig:
+    demos: str = option("", "demonstrations .npz to imitate (required)")
+    out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
+    policy: Literal["mlp", "gru"] = option("gru", "mlp: current observation only; gru: belief over the history")
+    hidden_size: int = option(128, "width of the dense layers and GRU cells")
+    iterations: int = option(1500, "gradient steps")
+    batch_episodes: int = option(64, "whole episodes per minibatch")
+    lr: float = option(1e-3, "Adam learning rate")
+    log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy")
+    seed: int = option(0, "random seed (same seed, same run on CPU)")
+    log_every: int = option(25, "iterations between log rows")
+    checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)")
+    device: str = option("cpu", "cpu, cuda, cuda:N or auto")
+    progress: bool = option(True, "show a progress bar")
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "batch_episodes", "hidden_size", "log_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.lr <= 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+
+
+def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked mean negative log-likelihood over a (T, B) block of whole episodes."""
+    starts = torch.zeros_like(mask)
+    starts[0] = True
+    h0 = policy.initial_state(obs.shape[1], obs.device)
+    dist, _ = policy.unroll(obs, shift_actions(actions), h0, starts)
+    m = mask.to(obs.dtype)
+    nll = -(dist.log_prob(actions).sum(-1) * m).sum() / m.sum()
+    mse = (((dist.mean - actions) ** 2).sum(-1) * m).sum() / m.sum()
+    return nll, {"bc/nll": nll.item(), "bc/action_mse": mse.item(), "bc/log_std": policy.log_std.mean().item()}
+
+
+def train_bc(config: BCConfig, resume: bool = False) -> Path:
+    """Train (or continue) a BC run; returns the checkpoint path."""
+    if not config.demos:
+        raise PomilError("bc: --demos is required (a demonstrations .npz file)")
+    run_dir = Path(config.out)
+    ckpt_path = run_dir / "checkpoint.pt"
+    device = resolve_device(config.device)
+    demos = Demonstrations.load(config.demos)
+    generator = seed_everything(config.seed)
+    arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
+    policy = GaussianPolicy(arch).to(device)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
+    start = 0
+    if resume:
+        if not ckpt_path.exists():
+            raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {run_dir})")
+        ckpt = load_checkpoint(ckpt_path, device)
+        if ckpt.get("config") != to_dict(config):
+            changed = sorted(k for k, v in to_dict(config).items() if ckpt.get("config", {}).get(k) != v)
+            if set(changed) - {"iterations", "progress", "checkpoint_every", "log_every", "device"}:
+                raise PomilError(f"{ckpt_path}: cannot resume with a different config (changed: {', '.join(changed)})")
+        policy.load_state_dict(ckpt["policy"])
+        optimizer.load_state_dict(ckpt["optimizers"]["policy"])
+        restore_rng(ckpt["rng"], generator)
+        start = int(ckpt["iteration"])
+    write_json(run_dir / "config.json", {"algo": "bc", **to_dict(config)})
+
+    data = demos.padded(device)
+    n_ep = demos.num_episodes
+    logger = RunLogger(run_dir, config.iterations, start, config.progress, desc="bc", key_stats=("bc/nll", "bc/action_mse"))
+
+    def checkpoint(iteration: int) -> None:
+        logger.flush()
+        save_checkpoint(ckpt_path, {
+            "algo": "bc", "iteration": iteration, "config": to_dict(config),
+            "env": {"id": demos.metadata.get("env_id"), "kwargs": demos.metadata.get("env_kwargs", {})},
+            "policy_arch": arch.to_dict(), "policy": policy.state_dict(),
+            "optimizers": {"policy": optimizer.state_dict()}, "rng": rng_state(generator),
+        })
+
+    t0 = time.perf_counter()
+    for iteration in range(start + 1, config.iterations + 1):
+        idx = torch.randint(n_ep, (min(config.batch_episodes, n_ep),), generator=generator).to(device)
+        batch = data.select(idx)
+        loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if iteration % config.log_every == 0 or iteration == config.iterations:
+            stats["time/elapsed_s"] = time.perf_counter() - t0
+            logger.log(iteration, stats)
+        if iteration % config.checkpoint_every == 0 and iteration != config.iterations:
+            checkpoint(iteration)
+        logger.update()
+    checkpoint(config.iterations)
+    logger.close()
+    return ckpt_path

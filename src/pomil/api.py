@@ -1,0 +1,92 @@
+"""The public policy API: load a trained policy and run it.
+
+>>> from pomil import TrainedPolicy
+>>> policy = TrainedPolicy.load("runs/bc/checkpoint.pt")      # doctest: +SKIP
+>>> policy.reset(num_envs=8, codes=[0, 1] * 4, seed=0)        # doctest: +SKIP
+>>> actions = policy.act(observations)                        # doctest: +SKIP
+
+The policy keeps its own recurrent state and previous action between
+``act`` calls; ``reset`` starts new episodes.  Codes are ignored by learners
+that have none (behaviour cloning, GAIL).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from pomil.errors import PomilError
+from pomil.nn.policy import GaussianPolicy, PolicyArch
+from pomil.training import load_checkpoint
+
+
+class TrainedPolicy:
+    def __init__(self, policy: GaussianPolicy, algo: str, env: dict[str, Any], device: torch.device | str = "cpu") -> None:
+        self.policy = policy.to(device).eval()
+        self.algo = algo
+        self.env = env
+        self.device = torch.device(device)
+        self._h: torch.Tensor | None = None
+
+    @classmethod
+    def load(cls, path: str | Path, device: torch.device | str = "cpu") -> "TrainedPolicy":
+        ckpt = load_checkpoint(path, map_location=device)
+        try:
+            policy = GaussianPolicy(PolicyArch(**ckpt["policy_arch"]))
+            policy.load_state_dict(ckpt["policy"])
+        except (KeyError, TypeError, RuntimeError) as err:
+            raise PomilError(f"{path}: checkpoint has no usable policy ({str(err).splitlines()[0][:160]})") from None
+        return cls(policy, str(ckpt.get("algo", "?")), dict(ckpt.get("env", {})), device)
+
+    @property
+    def num_codes(self) -> int:
+        """Number of latent codes (0 for learners without codes)."""
+        return self.policy.arch.num_codes
+
+    @property
+    def obs_dim(self) -> int:
+        return self.policy.arch.obs_dim
+
+    @property
+    def act_dim(self) -> int:
+        return self.policy.arch.act_dim
+
+    def reset(self, num_envs: int, codes: Sequence[int] | np.ndarray | torch.Tensor | None = None, seed: int | None = None) -> None:
+        """Start ``num_envs`` episodes.  ``codes``: one code per episode
+        (default: 0, 1, ..., K-1, 0, 1, ...); ignored without codes."""
+        self._n = num_envs
+        self._h = self.policy.initial_state(num_envs, self.device)
+        self._prev = torch.zeros(num_envs, self.act_dim, device=self.device)
+        self._start = torch.ones(num_envs, dtype=torch.bool, device=self.device)
+        self._gen = torch.Generator(device=self.device)
+        if seed is not None:
+            self._gen.manual_seed(seed)
+        else:
+            self._gen.seed()
+        self._codes = None
+        if self.num_codes > 0:
+            c = torch.arange(num_envs) % self.num_codes if codes is None else torch.as_tensor(np.asarray(codes), dtype=torch.long)
+            if c.shape != (num_envs,) or c.min() < 0 or c.max() >= self.num_codes:
+                raise PomilError(f"codes must be {num_envs} integers in [0, {self.num_codes}), got {c.tolist()}")
+            self._codes = torch.nn.functional.one_hot(c, self.num_codes).float().to(self.device)
+
+    @torch.no_grad()
+    def act(self, observations: np.ndarray | torch.Tensor, deterministic: bool = False) -> np.ndarray | torch.Tensor:
+        """Actions for one step of every episode; numpy in, numpy out."""
+        if self._h is None:
+            raise RuntimeError("call reset(num_envs, codes) before act()")
+        as_numpy = not isinstance(observations, torch.Tensor)
+        obs = torch.as_tensor(np.asarray(observations) if as_numpy else observations, dtype=torch.float32, device=self.device)
+        if obs.shape != (self._n, self.obs_dim):
+            raise ValueError(f"observations must have shape ({self._n}, {self.obs_dim}), got {tuple(obs.shape)}")
+        dist, self._h = self.policy.step(obs, self._prev, self._h, self._start, self._codes)
+        if deterministic:
+            action = dist.mean
+        else:
+            action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=self._gen, device=self.device)
+        self._prev = action
+        self._start = torch.zeros_like(self._start)
+        return action.cpu().numpy() if as_numpy else action

@@ -1,0 +1,223 @@
+"""The ``pomil`` command line: demos, train, evaluate, plot, reproduce.
+
+Every option of ``train`` (and of ``demos`` and ``reproduce``) is a field of a
+typed config dataclass; ``--config FILE.json`` sets any of them and flags
+override the file.  Problems with the user's input end with one line on
+stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Literal, get_args, get_origin
+
+from pomil.config import field_help, from_dict, load_config_file, option
+from pomil.errors import PomilError
+
+
+# ----------------------------------------------------------- configs <-> flags
+def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
+    parser.add_argument("--config", metavar="FILE.json", help="JSON object of config keys; flags override it")
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        flag = "--" + f.name.replace("_", "-")
+        default = f.default
+        help_text = f"{field_help(f)} (default: {default!r})"
+        if tp is bool:
+            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_text)
+            continue
+        kwargs: dict[str, Any] = {"dest": f.name, "default": None, "help": help_text}
+        if get_origin(tp) is Literal:
+            kwargs["choices"] = list(get_args(tp))
+        else:
+            kwargs["metavar"] = f.name.upper()
+        parser.add_argument(flag, **kwargs)
+
+
+def config_from_args(cls: type, args: argparse.Namespace) -> Any:
+    """Defaults, then the --config file, then flags; unknown keys are an error."""
+    values: dict[str, Any] = load_config_file(args.config) if getattr(args, "config", None) else {}
+    for f in dataclasses.fields(cls):
+        v = getattr(args, f.name, None)
+        if v is not None:
+            values[f.name] = v
+    return from_dict(cls, values, getattr(args, "config", None) or "config")
+
+
+# ------------------------------------------------------------------ commands
+@dataclass(frozen=True)
+class CirclesDemosConfig:
+    out: str = option("data/circles.npz", "output .npz file (written atomically)")
+    episodes: int = option(400, "episodes in total, split equally between the modes")
+    modes: Literal["two", "four"] = option("two", "circles preset: two (the paper's) or four")
+    radius: float = option(5.0, "radius of every circle")
+    episode_length: int = option(33, "steps per episode (33 = one loop of a radius-5 circle)")
+    history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions")
+    action_type: Literal["vector", "angle"] = option("vector", "action format: 2-D direction vector or heading angle")
+    noise_std: float = option(0.36787944117144233, "std of the experts' heading noise in radians (exp(-1))")
+    seed: int = option(0, "random seed")
+
+
+def cmd_demos(args: argparse.Namespace) -> int:
+    from pomil.envs.circles import make_spec
+    from pomil.experts import record_circles_demos
+
+    cfg: CirclesDemosConfig = config_from_args(CirclesDemosConfig, args)
+    try:
+        spec = make_spec(cfg.modes, cfg.radius, cfg.episode_length, cfg.history, cfg.action_type)
+        demos = record_circles_demos(spec, cfg.episodes, cfg.noise_std, cfg.seed)
+    except ValueError as err:
+        raise PomilError(f"demos circles: {err}") from None
+    demos.save(cfg.out)
+    rets = ", ".join(f"mode {k}: {v:.2f}" for k, v in demos.metadata["expert_returns"].items())
+    print(f"wrote {cfg.out}: {demos.num_episodes} episodes x {spec.episode_length} steps, "
+          f"{spec.num_modes} modes (mean expert return {rets})")
+    return 0
+
+
+def _learners() -> dict[str, tuple[type, Callable[..., Path]]]:
+    from pomil.algos.bc import BCConfig, train_bc
+
+    return {"bc": (BCConfig, train_bc)}
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    cls, train = _learners()[args.algo]
+    cfg = config_from_args(cls, args)
+    ckpt = train(cfg, resume=args.resume)
+    print(f"wrote {ckpt}")
+    return 0
+
+
+def _format_metrics(m: dict[str, Any]) -> str:
+    lines = [f"algo {m['algo']}  codes {m['num_codes']}  episodes/code {m['episodes_per_code']}  "
+             f"{'deterministic' if m['deterministic'] else 'stochastic'}"]
+    k = len(m["overall_mode_share"])
+    head = "code  " + "  ".join(f"mode{j:<3d}" for j in range(k)) + "  none    purity"
+    lines.append(head)
+    for pc in m["per_code"]:
+        code = str(pc["code"]) if m["num_codes"] else "-"
+        shares = "  ".join(f"{s:7.2f}" for s in pc["mode_share"])
+        lines.append(f"{code:<4s}  {shares}  {pc['none_share']:5.2f}   {pc['purity']:.2f}")
+    lines.append(f"modes covered {m['modes_covered']}/{k}   NMI(code, mode) {m['nmi']:.3f}   "
+                 f"mean purity {m['mean_purity']:.3f}   mean return {m['mean_return']:.2f}")
+    return "\n".join(lines)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from pomil.api import TrainedPolicy
+    from pomil.eval.rollout import evaluate_circles
+
+    if args.episodes_per_code < 1:
+        raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
+    policy = TrainedPolicy.load(args.checkpoint)
+    metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, args.deterministic, args.none_threshold)
+    print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from pomil.api import TrainedPolicy
+    from pomil.data import Demonstrations
+    from pomil.eval.plots import figure1
+    from pomil.eval.rollout import rollout_circles
+
+    panels = []
+    if args.demos:
+        demos = Demonstrations.load(args.demos)
+        if demos.states is None or demos.labels is None:
+            raise PomilError(f"{args.demos}: field 'states'/'labels': expected both for plotting experts")
+        T = int(demos.episode_lengths[0])
+        pos = demos.states.reshape(demos.num_episodes, T, -1)[:, :, :2]
+        # states hold the position *before* each action: shift by one to show visited points
+        pos = pos[:, 1:]
+        panels.append(("experts", pos, demos.labels, "mode"))
+    for ckpt in args.checkpoints:
+        policy = TrainedPolicy.load(ckpt)
+        roll = rollout_circles(policy, args.episodes_per_code, args.seed, args.deterministic)
+        panels.append((f"{policy.algo}: {Path(ckpt).parent.name or ckpt}", roll["positions"], roll["codes"], "code"))
+    if not panels:
+        raise PomilError("plot: give at least one checkpoint or --demos")
+    figure1(panels, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from pomil.reproduce import CirclesReproConfig, reproduce_circles
+
+    cfg = config_from_args(CirclesReproConfig, args)
+    reproduce_circles(cfg)
+    return 0
+
+
+# -------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pomil", description="Multi-modal imitation learning in partially observable environments.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    demos = sub.add_parser("demos", help="record expert demonstrations")
+    demos_sub = demos.add_subparsers(dest="env", required=True, metavar="ENV")
+    dc = demos_sub.add_parser("circles", help="scripted circle experts, equal numbers per mode")
+    add_config_flags(dc, CirclesDemosConfig)
+    dc.set_defaults(func=cmd_demos)
+
+    train = sub.add_parser("train", help="train a learner on demonstrations")
+    train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
+    for name, (cls, _) in _learners().items():
+        tp = train_sub.add_parser(name, help=(sys.modules[_learners()[name][1].__module__].__doc__ or "").strip().splitlines()[0])
+        add_config_flags(tp, cls)
+        tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+        tp.set_defaults(func=cmd_train)
+
+    ev = sub.add_parser("evaluate", help="roll a checkpoint out and report mode metrics (circles)")
+    ev.add_argument("checkpoint", help="checkpoint.pt (or its run directory)")
+    ev.add_argument("--episodes-per-code", type=int, default=100, help="rollouts per latent code (default: 100)")
+    ev.add_argument("--seed", type=int, default=0, help="rollout seed (default: 0)")
+    ev.add_argument("--deterministic", action="store_true", help="act with the policy mean instead of sampling")
+    ev.add_argument("--none-threshold", type=float, default=1.0,
+                    help="mean distance to every circle above which a trajectory is in no mode (default: 1.0)")
+    ev.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    ev.set_defaults(func=cmd_evaluate)
+
+    pl = sub.add_parser("plot", help="Figure-1-style trajectories: experts and policies coloured by code")
+    pl.add_argument("checkpoints", nargs="*", help="checkpoints to roll out, one panel each")
+    pl.add_argument("--demos", help="demonstrations .npz: adds a panel of expert trajectories coloured by mode")
+    pl.add_argument("--out", default="figure.png", help="output image (default: figure.png)")
+    pl.add_argument("--episodes-per-code", type=int, default=20, help="trajectories drawn per code (default: 20)")
+    pl.add_argument("--seed", type=int, default=0, help="rollout seed (default: 0)")
+    pl.add_argument("--deterministic", action="store_true", help="act with the policy mean")
+    pl.set_defaults(func=cmd_plot)
+
+    from pomil.reproduce import CirclesReproConfig
+
+    rp = sub.add_parser("reproduce", help="run a paper experiment end to end")
+    rp_sub = rp.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
+    rc = rp_sub.add_parser("circles", help="demos, train every learner over seeds, evaluate, table and figure")
+    add_config_flags(rc, CirclesReproConfig)
+    rc.set_defaults(func=cmd_reproduce)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except PomilError as err:
+        print(f"pomil: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("pomil: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

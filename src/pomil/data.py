@@ -1,0 +1,248 @@
+"""Demonstrations: one frozen container, checked on construction, saved as .npz.
+
+Episodes are stored back to back (flat arrays) with their boundaries, so
+episodes of different lengths need no padding on disk.  ``labels`` (which
+expert / task made each episode) and ``states`` (full simulator states) are
+optional and for evaluation only: unsupervised learners never read them.
+
+Files are plain ``.npz`` archives of numeric arrays plus one JSON string of
+metadata; they load with ``allow_pickle=False``, so opening a file never runs
+code from it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pomil.errors import DataError
+
+FORMAT_VERSION = 1
+_ARRAYS = ("observations", "actions", "episode_bounds", "labels", "states")
+
+
+def _check_finite(name: str, arr: np.ndarray) -> None:
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+        raise DataError(name, f"expected finite values, found {bad} NaN/inf")
+
+
+@dataclass(frozen=True)
+class Demonstrations:
+    """Expert demonstrations, E episodes of (observation, action) pairs.
+
+    Shapes (S = total steps over all episodes):
+      observations   (S, obs_dim) float32, what the learner sees at each step
+      actions        (S, act_dim) float32, what the expert did
+      episode_bounds (E + 1,) int64, episode i is rows bounds[i]:bounds[i+1]
+      labels         (E,) int64 or None, expert / task id (evaluation only)
+      states         (S, state_dim) float32 or None, full states (evaluation)
+      metadata       JSON-able dict: env_id, env_kwargs, observation_mask,
+                     source, expert_returns, ...
+    """
+
+    observations: np.ndarray
+    actions: np.ndarray
+    episode_bounds: np.ndarray
+    labels: np.ndarray | None = None
+    states: np.ndarray | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        obs = np.asarray(self.observations)
+        act = np.asarray(self.actions)
+        bounds = np.asarray(self.episode_bounds)
+        if obs.ndim != 2:
+            raise DataError("observations", f"expected a 2-D array (steps, obs_dim), got shape {obs.shape}")
+        if act.ndim != 2:
+            raise DataError("actions", f"expected a 2-D array (steps, act_dim), got shape {act.shape}")
+        for name, arr in (("observations", obs), ("actions", act)):
+            if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+                raise DataError(name, f"expected real numbers, got dtype {arr.dtype}")
+            _check_finite(name, arr.astype(np.float64))
+        if act.shape[0] != obs.shape[0]:
+            raise DataError("actions", f"expected {obs.shape[0]} rows (one per observation), got {act.shape[0]}")
+        if bounds.ndim != 1 or not np.issubdtype(bounds.dtype, np.integer):
+            raise DataError("episode_bounds", f"expected a 1-D integer array, got shape {bounds.shape} dtype {bounds.dtype}")
+        if bounds.size < 2:
+            raise DataError("episode_bounds", "expected at least one episode, got zero")
+        if bounds[0] != 0 or bounds[-1] != obs.shape[0]:
+            raise DataError(
+                "episode_bounds",
+                f"expected to start at 0 and end at {obs.shape[0]} (the number of steps), got {bounds[0]}..{bounds[-1]}",
+            )
+        if np.any(np.diff(bounds) <= 0):
+            raise DataError("episode_bounds", "expected strictly increasing bounds (no empty episodes)")
+        n_ep = bounds.size - 1
+        if self.labels is not None:
+            labels = np.asarray(self.labels)
+            if labels.shape != (n_ep,) or not np.issubdtype(labels.dtype, np.integer):
+                raise DataError("labels", f"expected ({n_ep},) integers (one per episode), got shape {labels.shape} dtype {labels.dtype}")
+            object.__setattr__(self, "labels", labels.astype(np.int64))
+        if self.states is not None:
+            states = np.asarray(self.states)
+            if states.ndim != 2 or states.shape[0] != obs.shape[0]:
+                raise DataError("states", f"expected ({obs.shape[0]}, state_dim), got shape {states.shape}")
+            _check_finite("states", states.astype(np.float64))
+            object.__setattr__(self, "states", states.astype(np.float32))
+        if not isinstance(self.metadata, dict):
+            raise DataError("metadata", f"expected a dict, got {type(self.metadata).__name__}")
+        object.__setattr__(self, "observations", obs.astype(np.float32))
+        object.__setattr__(self, "actions", act.astype(np.float32))
+        object.__setattr__(self, "episode_bounds", bounds.astype(np.int64))
+
+    # ------------------------------------------------------------------ views
+    @property
+    def num_episodes(self) -> int:
+        return int(self.episode_bounds.size - 1)
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.observations.shape[0])
+
+    @property
+    def obs_dim(self) -> int:
+        return int(self.observations.shape[1])
+
+    @property
+    def act_dim(self) -> int:
+        return int(self.actions.shape[1])
+
+    @property
+    def episode_lengths(self) -> np.ndarray:
+        return np.diff(self.episode_bounds)
+
+    def episode(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = self.episode_bounds[i], self.episode_bounds[i + 1]
+        return self.observations[lo:hi], self.actions[lo:hi]
+
+    def padded(self, device: torch.device | str = "cpu") -> "PaddedEpisodes":
+        """All episodes as time-major (T_max, E, ...) tensors with a validity mask."""
+        lengths = self.episode_lengths
+        t_max, n_ep = int(lengths.max()), self.num_episodes
+        step = np.arange(t_max)[:, None]
+        mask = step < lengths[None, :]
+        rows = np.where(mask, self.episode_bounds[:-1][None, :] + step, 0)
+        obs = np.where(mask[..., None], self.observations[rows], 0.0)
+        act = np.where(mask[..., None], self.actions[rows], 0.0)
+        return PaddedEpisodes(
+            observations=torch.as_tensor(obs, dtype=torch.float32, device=device),
+            actions=torch.as_tensor(act, dtype=torch.float32, device=device),
+            mask=torch.as_tensor(mask, device=device),
+        )
+
+    def check_compatible(self, obs_dim: int, act_dim: int, source: str | None = None) -> None:
+        """Raise a DataError unless the sizes match an environment's."""
+        try:
+            if self.obs_dim != obs_dim:
+                raise DataError("observations", f"expected obs_dim {obs_dim} for this environment, got {self.obs_dim}")
+            if self.act_dim != act_dim:
+                raise DataError("actions", f"expected act_dim {act_dim} for this environment, got {self.act_dim}")
+        except DataError as err:
+            raise err.with_source(source) if source else err from None
+
+    # -------------------------------------------------------------------- I/O
+    def save(self, path: str | Path) -> None:
+        """Write atomically: a temporary file in the same folder, then rename."""
+        path = Path(path)
+        arrays: dict[str, np.ndarray] = {
+            "observations": self.observations,
+            "actions": self.actions,
+            "episode_bounds": self.episode_bounds,
+            "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
+            "metadata": np.array(json.dumps(self.metadata)),
+        }
+        if self.labels is not None:
+            arrays["labels"] = self.labels
+        if self.states is not None:
+            arrays["states"] = self.states
+        atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Demonstrations":
+        """Load and validate; any problem is a DataError naming file and field."""
+        path = Path(path)
+        src = str(path)
+        if not path.exists():
+            raise DataError("(file)", "no such file", src)
+        if not zipfile.is_zipfile(path):
+            raise DataError("(file)", "expected an .npz archive (numpy.savez), but this is not a zip file", src)
+        try:
+            with np.load(path, allow_pickle=False) as archive:
+                names = set(archive.files)
+                for required in ("observations", "actions", "episode_bounds"):
+                    if required not in names:
+                        raise DataError(required, "missing from the archive", src)
+                values: dict[str, Any] = {}
+                for name in _ARRAYS:
+                    if name in names:
+                        try:
+                            values[name] = archive[name]
+                        except ValueError as err:
+                            if "allow_pickle" in str(err):
+                                raise DataError(name, "holds pickled Python objects; expected a numeric array", src) from None
+                            raise DataError(name, f"unreadable ({err})", src) from None
+                metadata: dict[str, Any] = {}
+                if "metadata" in names:
+                    try:
+                        raw = archive["metadata"]
+                        metadata = json.loads(str(raw))
+                    except (ValueError, json.JSONDecodeError):
+                        raise DataError("metadata", "expected a JSON string", src) from None
+                    if not isinstance(metadata, dict):
+                        raise DataError("metadata", "expected a JSON object", src)
+        except DataError:
+            raise
+        except (OSError, zipfile.BadZipFile, EOFError) as err:
+            raise DataError("(file)", f"unreadable .npz archive ({err})", src) from None
+        try:
+            return cls(metadata=metadata, **values)
+        except DataError as err:
+            raise err.with_source(src) from None
+
+
+@dataclass(frozen=True)
+class PaddedEpisodes:
+    """Episodes time-major: observations (T, E, obs_dim), actions (T, E, act_dim), mask (T, E)."""
+
+    observations: torch.Tensor
+    actions: torch.Tensor
+    mask: torch.Tensor
+
+    def __post_init__(self) -> None:
+        t, e = self.mask.shape
+        if self.observations.shape[:2] != (t, e) or self.actions.shape[:2] != (t, e):
+            raise ValueError(
+                f"padded shapes disagree: obs {tuple(self.observations.shape)}, "
+                f"actions {tuple(self.actions.shape)}, mask {tuple(self.mask.shape)}"
+            )
+
+    def select(self, idx: torch.Tensor) -> "PaddedEpisodes":
+        return PaddedEpisodes(self.observations[:, idx], self.actions[:, idx], self.mask[:, idx])
+
+
+def atomic_write(path: Path, write) -> None:
+    """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename over it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise

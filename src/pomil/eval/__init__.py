@@ -1,0 +1,1 @@
+"""Evaluation: rollouts, mode-recovery metrics, figures."""

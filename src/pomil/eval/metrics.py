@@ -1,0 +1,77 @@
+"""Mode-recovery statistics as free functions on integer labels.
+
+Trajectories carry a latent code (what the policy was told) and a mode (what
+the classifier saw, -1 for "none").  For each code: the share of its
+trajectories in each mode, its purity (largest share in one real mode), and
+the majority mode.  ``modes_covered`` counts the distinct real modes that are
+some code's majority mode with purity >= 0.5.  NMI is the mutual information
+between code and mode ("none" counts as its own class) normalised by the
+arithmetic mean of their entropies (scikit-learn's default); it is defined as
+0 when either side has a single class.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def entropy(labels: np.ndarray) -> float:
+    _, counts = np.unique(labels, return_counts=True)
+    p = counts / counts.sum()
+    return float(-(p * np.log(p)).sum())
+
+
+def mutual_information(a: np.ndarray, b: np.ndarray) -> float:
+    a = np.asarray(a)
+    b = np.asarray(b)
+    _, ai = np.unique(a, return_inverse=True)
+    _, bi = np.unique(b, return_inverse=True)
+    joint = np.zeros((ai.max() + 1, bi.max() + 1))
+    np.add.at(joint, (ai, bi), 1.0)
+    joint /= joint.sum()
+    pa, pb = joint.sum(1, keepdims=True), joint.sum(0, keepdims=True)
+    nz = joint > 0
+    return float((joint[nz] * np.log(joint[nz] / (pa @ pb)[nz])).sum())
+
+
+def normalized_mutual_info(a: np.ndarray, b: np.ndarray) -> float:
+    ha, hb = entropy(a), entropy(b)
+    if ha == 0.0 or hb == 0.0:
+        return 0.0
+    return float(np.clip(mutual_information(a, b) / (0.5 * (ha + hb)), 0.0, 1.0))
+
+
+def mode_metrics(codes: np.ndarray, modes: np.ndarray, num_codes: int, num_modes: int) -> dict[str, Any]:
+    """Per-code mode shares, purity, majority mode; modes covered; NMI.
+
+    ``codes``: (E,) in [0, num_codes) (all zeros for a policy without codes,
+    with num_codes = 1); ``modes``: (E,) in [-1, num_modes).
+    """
+    codes = np.asarray(codes, dtype=np.int64)
+    modes = np.asarray(modes, dtype=np.int64)
+    if codes.shape != modes.shape or codes.ndim != 1:
+        raise ValueError(f"codes and modes must be equal-length 1-D arrays, got {codes.shape} and {modes.shape}")
+    per_code = []
+    for c in range(num_codes):
+        m = modes[codes == c]
+        n = max(len(m), 1)
+        share = [float((m == k).sum() / n) for k in range(num_modes)]
+        none = float((m == -1).sum() / n)
+        majority = int(np.argmax(share))
+        per_code.append({
+            "code": c, "episodes": int(len(m)), "mode_share": share, "none_share": none,
+            "purity": float(max(share)), "majority_mode": majority,
+        })
+    covered = {pc["majority_mode"] for pc in per_code if pc["purity"] >= 0.5}
+    overall = [float((modes == k).mean()) for k in range(num_modes)]
+    return {
+        "per_code": per_code,
+        "mean_purity": float(np.mean([pc["purity"] for pc in per_code])),
+        "min_purity": float(np.min([pc["purity"] for pc in per_code])),
+        "modes_covered": len(covered),
+        "nmi": normalized_mutual_info(codes, modes),
+        "overall_mode_share": overall,
+        "overall_none_share": float((modes == -1).mean()),
+    }

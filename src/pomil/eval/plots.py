@@ -1,0 +1,45 @@
+"""Figures from saved arrays only (no models): Figure-1-style trajectory panels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from pomil.data import atomic_write
+
+COLOURS = ["tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive"]
+
+
+def _panel(ax, positions: np.ndarray, groups: np.ndarray, title: str, group_name: str, max_per_group: int) -> None:
+    for g in np.unique(groups):
+        sel = np.flatnonzero(groups == g)[:max_per_group]
+        colour = COLOURS[int(g) % len(COLOURS)]
+        for j, e in enumerate(sel):
+            path = np.concatenate([np.zeros((1, 2)), positions[e]], axis=0)
+            ax.plot(path[:, 0], path[:, 1], color=colour, lw=0.8, alpha=0.6, label=f"{group_name} {g}" if j == 0 else None)
+    ax.plot(0, 0, "k.", ms=6)
+    ax.set_title(title, fontsize=10)
+    ax.set_aspect("equal")
+    ax.set_xlim(-10, 10)
+    ax.set_ylim(-12, 12)
+    ax.legend(fontsize=7, loc="upper right")
+
+
+def figure1(
+    panels: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path: str | Path, max_per_group: int = 20,
+) -> None:
+    """One panel per (title, positions (E, T, 2), groups (E,), group name)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.8), squeeze=False)
+    for ax, (title, pos, groups, name) in zip(axes[0], panels):
+        _panel(ax, np.asarray(pos), np.asarray(groups), title, name, max_per_group)
+    fig.tight_layout()
+    suffix = Path(path).suffix.lstrip(".") or "png"
+    atomic_write(Path(path), lambda f: fig.savefig(f, format=suffix, dpi=120))
+    plt.close(fig)

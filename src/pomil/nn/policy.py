@@ -1,0 +1,75 @@
+"""Gaussian policy pi(a | encoder(history), c) with an optional latent code.
+
+The code c (one-hot, K codes) is embedded and added to the encoder's
+features, as in the paper's code.  The log standard deviation is a learned
+state-independent vector.  ``tanh_mean`` squashes the mean into (-1, 1) (the
+paper's Hopper code).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+from torch import nn
+from torch.distributions import Normal
+
+from pomil.nn.encoders import make_encoder
+
+
+@dataclass(frozen=True)
+class PolicyArch:
+    """What it takes to rebuild a policy from its state dict."""
+
+    obs_dim: int
+    act_dim: int
+    encoder: str = "gru"
+    hidden_size: int = 128
+    num_codes: int = 0
+    log_std_init: float = -1.0
+    tanh_mean: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class GaussianPolicy(nn.Module):
+    def __init__(self, arch: PolicyArch) -> None:
+        super().__init__()
+        self.arch = arch
+        self.encoder = make_encoder(arch.encoder, arch.obs_dim, arch.act_dim, arch.hidden_size)
+        feat = self.encoder.out_size
+        self.code_embed = nn.Linear(arch.num_codes, feat, bias=False) if arch.num_codes > 0 else None
+        self.mean = nn.Sequential(nn.Linear(feat, arch.hidden_size), nn.ELU(), nn.Linear(arch.hidden_size, arch.act_dim))
+        self.log_std = nn.Parameter(torch.full((arch.act_dim,), float(arch.log_std_init)))
+
+    def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
+        return self.encoder.initial_state(batch, device)
+
+    def _dist(self, features: torch.Tensor, codes: torch.Tensor | None) -> Normal:
+        if self.code_embed is not None:
+            if codes is None:
+                raise ValueError("this policy has latent codes: pass one-hot codes")
+            features = features + self.code_embed(codes)
+        mean = self.mean(features)
+        if self.arch.tanh_mean:
+            mean = torch.tanh(mean)
+        return Normal(mean, self.log_std.exp().expand_as(mean))
+
+    def step(self, obs, prev_action, h, start, codes=None) -> tuple[Normal, torch.Tensor]:
+        """One step for N environments: obs (N, obs_dim) ... -> (dist, new h)."""
+        feats, h = self.encoder.step(obs, prev_action, h, start)
+        return self._dist(feats, codes), h
+
+    def unroll(self, obs, prev_actions, h0, starts, codes=None) -> tuple[Normal, torch.Tensor]:
+        """A (T, N) block of steps; codes (N, K) or (T, N, K)."""
+        feats, h = self.encoder.unroll(obs, prev_actions, h0, starts)
+        if codes is not None and codes.ndim == 2:
+            codes = codes.unsqueeze(0).expand(feats.shape[0], -1, -1)
+        return self._dist(feats, codes), h
+
+
+def shift_actions(actions: torch.Tensor) -> torch.Tensor:
+    """Previous actions a_{t-1} for a time-major (T, N, act_dim) block, zero at t = 0."""
+    return torch.cat([torch.zeros_like(actions[:1]), actions[:-1]], dim=0)
