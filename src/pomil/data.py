@@ -246,3 +246,24 @@ def atomic_write(path: Path, write) -> None:
         except FileNotFoundError:
             pass
         raise
+
+
+def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, Any]]:
+    """Check that the demos name their environment and fit its spaces.
+
+    Returns (env_id, env_kwargs) from the metadata.
+    """
+    from pomil.envs import env_dims
+
+    env_id = demos.metadata.get("env_id")
+    kwargs = demos.metadata.get("env_kwargs") or {}
+    if not isinstance(env_id, str) or not env_id:
+        raise DataError("metadata.env_id", "expected the id of the environment the demonstrations come from", source)
+    if not isinstance(kwargs, dict):
+        raise DataError("metadata.env_kwargs", f"expected a JSON object, got {type(kwargs).__name__}", source)
+    try:
+        obs_dim, act_dim = env_dims(env_id, kwargs)
+    except Exception as err:  # unknown id, bad kwargs: gymnasium raises several types
+        raise DataError("metadata.env_id", f"cannot build {env_id!r} with {kwargs} ({str(err).splitlines()[0][:160]})", source) from None
+    demos.check_compatible(obs_dim, act_dim, source)
+    return env_id, kwargs

@@ -72,6 +72,18 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return payload
 
 
+# Settings a resumed run may change: they do not alter what is computed.
+RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device"})
+
+
+def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str | Path) -> None:
+    """Refuse to resume a run under a config that would change its results."""
+    saved = ckpt.get("config", {})
+    changed = sorted(k for k in set(config) | set(saved) if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
+    if changed:
+        raise PomilError(f"{path}: cannot resume with a different config (changed: {', '.join(changed)})")
+
+
 def rng_state(generator: torch.Generator) -> dict[str, torch.Tensor]:
     return {"torch": torch.get_rng_state(), "generator": generator.get_state()}
 

@@ -17,11 +17,11 @@ from typing import Literal
 import torch
 
 from pomil.config import option, to_dict
-from pomil.data import Demonstrations
+from pomil.data import Demonstrations, check_demos_env
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import (
-    RunLogger, load_checkpoint, resolve_device, restore_rng, rng_state, save_checkpoint,
+    RunLogger, check_resume_config, load_checkpoint, resolve_device, restore_rng, rng_state, save_checkpoint,
     seed_everything, write_json,
 )
 
@@ -70,6 +70,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(config.device)
     demos = Demonstrations.load(config.demos)
+    env_id, env_kwargs = check_demos_env(demos, config.demos)
     generator = seed_everything(config.seed)
     arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
     policy = GaussianPolicy(arch).to(device)
@@ -79,10 +80,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
         if not ckpt_path.exists():
             raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {run_dir})")
         ckpt = load_checkpoint(ckpt_path, device)
-        if ckpt.get("config") != to_dict(config):
-            changed = sorted(k for k, v in to_dict(config).items() if ckpt.get("config", {}).get(k) != v)
-            if set(changed) - {"iterations", "progress", "checkpoint_every", "log_every", "device"}:
-                raise PomilError(f"{ckpt_path}: cannot resume with a different config (changed: {', '.join(changed)})")
+        check_resume_config(ckpt, to_dict(config), ckpt_path)
         policy.load_state_dict(ckpt["policy"])
         optimizer.load_state_dict(ckpt["optimizers"]["policy"])
         restore_rng(ckpt["rng"], generator)
@@ -97,7 +95,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
         logger.flush()
         save_checkpoint(ckpt_path, {
             "algo": "bc", "iteration": iteration, "config": to_dict(config),
-            "env": {"id": demos.metadata.get("env_id"), "kwargs": demos.metadata.get("env_kwargs", {})},
+            "env": {"id": env_id, "kwargs": env_kwargs},
             "policy_arch": arch.to_dict(), "policy": policy.state_dict(),
             "optimizers": {"policy": optimizer.state_dict()}, "rng": rng_state(generator),
         })
@@ -110,7 +108,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        if iteration % config.log_every == 0 or iteration == config.iterations:
+        if iteration % config.log_every == 0 or iteration in (1, config.iterations):
             stats["time/elapsed_s"] = time.perf_counter() - t0
             logger.log(iteration, stats)
         if iteration % config.checkpoint_every == 0 and iteration != config.iterations:

@@ -1,8 +1,30 @@
 """Environments: the 2-D circles POMDP (and, later, MuJoCo tasks)."""
 
+from __future__ import annotations
+
+from typing import Any
+
 import gymnasium as gym
 
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 
 if CIRCLES_ID not in gym.registry:
     gym.register(id=CIRCLES_ID, entry_point="pomil.envs.circles:CirclesEnv")
+
+
+def env_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
+    """(obs_dim, act_dim) of a registered environment with Box spaces.
+
+    Raises ValueError/TypeError (or gymnasium's errors) for an unknown id or
+    bad keyword arguments; callers turn those into user-facing errors.
+    """
+    if env_id == CIRCLES_ID:
+        from pomil.envs.circles import CirclesSpec
+
+        spec = CirclesSpec.from_dict(env_kwargs)
+        return spec.obs_dim, spec.act_dim
+    env = gym.make(env_id, **env_kwargs)
+    try:
+        return int(env.observation_space.shape[0]), int(env.action_space.shape[0])
+    finally:
+        env.close()

@@ -1,0 +1,40 @@
+import math
+
+import numpy as np
+import pytest
+
+from pomil.eval.metrics import mode_metrics, mutual_information, normalized_mutual_info
+
+
+def test_nmi_extremes():
+    a = np.array([0, 0, 1, 1])
+    assert normalized_mutual_info(a, a) == pytest.approx(1.0)
+    assert normalized_mutual_info(a, 1 - a) == pytest.approx(1.0)
+    assert normalized_mutual_info(a, np.array([0, 1, 0, 1])) == pytest.approx(0.0)
+    assert normalized_mutual_info(np.zeros(4), a) == 0.0
+
+
+def test_mutual_information_hand_computed():
+    # joint: (0,0) 1/2, (1,0) 1/4, (1,1) 1/4 -> MI = H(b) - H(b|a) = H(3/4,1/4) - 1/2 * 1 bit(in nats)
+    a, b = np.array([0, 0, 1, 1]), np.array([0, 0, 0, 1])
+    hb = -(0.75 * math.log(0.75) + 0.25 * math.log(0.25))
+    assert mutual_information(a, b) == pytest.approx(hb - 0.5 * math.log(2))
+    ha = math.log(2)
+    assert normalized_mutual_info(a, b) == pytest.approx((hb - 0.5 * math.log(2)) / (0.5 * (ha + hb)))
+
+
+def test_mode_metrics_on_a_constructed_case():
+    codes = np.array([0] * 10 + [1] * 10)
+    modes = np.array([1] * 9 + [-1] + [0] * 6 + [1] * 4)
+    m = mode_metrics(codes, modes, 2, 2)
+    assert m["per_code"][0]["mode_share"] == [0.0, 0.9] and m["per_code"][0]["none_share"] == pytest.approx(0.1)
+    assert m["per_code"][0]["majority_mode"] == 1 and m["per_code"][1]["majority_mode"] == 0
+    assert m["per_code"][1]["purity"] == pytest.approx(0.6)
+    assert m["modes_covered"] == 2
+    assert m["mean_purity"] == pytest.approx(0.75) and m["min_purity"] == pytest.approx(0.6)
+    assert m["overall_mode_share"] == [0.3, 0.65] and m["overall_none_share"] == pytest.approx(0.05)
+
+
+def test_codes_on_the_same_mode_cover_one():
+    m = mode_metrics(np.array([0, 0, 1, 1]), np.array([1, 1, 1, 1]), 2, 2)
+    assert m["modes_covered"] == 1 and m["nmi"] == 0.0

@@ -1,0 +1,89 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+from pomil.cli import build_parser, main
+
+
+def pomil(*args):
+    return subprocess.run([sys.executable, "-m", "pomil.cli", *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+def test_cli_smoke_demos_train_evaluate_plot(tmp_path):
+    demos = tmp_path / "c.npz"
+    r = pomil("demos", "circles", "--episodes", 40, "--out", demos, "--seed", 3)
+    assert r.returncode == 0, r.stderr
+    assert "40 episodes x 33 steps" in r.stdout
+    run = tmp_path / "run"
+    r = pomil("train", "bc", "--demos", demos, "--out", run, "--iterations", 20, "--policy", "mlp", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert {"checkpoint.pt", "metrics.csv", "config.json", "tb"} <= {p.name for p in run.iterdir()}
+    assert any((run / "tb").iterdir())
+    r = pomil("evaluate", run / "checkpoint.pt", "--episodes-per-code", 10, "--json")
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads(r.stdout)
+    assert metrics["algo"] == "bc" and metrics["episodes_per_code"] == 10
+    assert abs(sum(metrics["overall_mode_share"]) + metrics["overall_none_share"] - 1) < 1e-9
+    r = pomil("evaluate", run)
+    assert r.returncode == 0 and "NMI(code, mode)" in r.stdout
+    fig = tmp_path / "fig.png"
+    r = pomil("plot", run / "checkpoint.pt", "--demos", demos, "--out", fig)
+    assert r.returncode == 0, r.stderr
+    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_config_file_sets_options_and_unknown_keys_list_the_valid_ones(tmp_path, demos_path):
+    cfg = tmp_path / "bc.json"
+    cfg.write_text(json.dumps({"iterations": 3, "policy": "mlp", "hidden-size": 8, "progress": False}))
+    assert main(["train", "bc", "--config", str(cfg), "--demos", str(demos_path), "--out", str(tmp_path / "r")]) == 0
+    saved = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert (saved["iterations"], saved["policy"], saved["hidden_size"]) == (3, "mlp", 8)
+    cfg.write_text(json.dumps({"iterations": 3, "learning_rate": 0.1}))
+    r = pomil("train", "bc", "--config", cfg, "--demos", demos_path, "--out", tmp_path / "r2")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "unknown key(s) ['learning_rate']" in r.stderr and "batch_episodes" in r.stderr and "lr" in r.stderr
+
+
+@pytest.mark.parametrize("args, text", [
+    (["train", "bc", "--demos", "x.npz", "--iterations", "ten"], "config key 'iterations': expected int"),
+    (["train", "bc", "--out", "o"], "--demos is required"),
+    (["demos", "circles", "--episodes", "3"], "multiple of the number of modes"),
+    (["evaluate", "nope.pt"], "no such checkpoint"),
+])
+def test_bad_options_are_one_line_errors(args, text, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "pomil.cli", *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert r.returncode == 2 and text in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_every_option_has_help_with_its_default():
+    parser = build_parser()
+    sub = {a.dest: a for a in parser._actions if a.dest == "command"}["command"]
+
+    def walk(p):
+        yield p
+        for a in p._actions:
+            if a.__class__.__name__ == "_SubParsersAction":
+                for child in a.choices.values():
+                    yield from walk(child)
+
+    for p in walk(parser):
+        for action in p._actions:
+            if action.option_strings and action.dest != "help":
+                assert action.help, (p.prog, action.dest)
+    assert set(sub.choices) >= {"demos", "train", "evaluate", "plot", "reproduce"}
+
+
+def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
+    out = tmp_path / "results"
+    r = pomil("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
+              "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["learners"]) == {"bc-mlp", "bc-gru"}
+    assert len(metrics["learners"]["bc-gru"]["runs"]) == 2
+    assert "| bc-mlp |" in (out / "table.md").read_text()
+    assert (out / "figure.png").stat().st_size > 1000
