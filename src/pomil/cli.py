@@ -22,10 +22,14 @@ from pomil.errors import PomilError
 
 
 # ----------------------------------------------------------- configs <-> flags
-def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
+def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str, Any] | None = None) -> None:
+    """One flag per config field, except the ``fixed`` ones (set by the subcommand)."""
     parser.add_argument("--config", metavar="FILE.json", help="JSON object of config keys; flags override it")
+    parser.set_defaults(**(fixed or {}))
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
+        if fixed and f.name in fixed:
+            continue
         tp = hints[f.name]
         flag = "--" + f.name.replace("_", "-")
         default = f.default
@@ -83,9 +87,10 @@ def cmd_demos(args: argparse.Namespace) -> int:
 
 
 def _learners() -> dict[str, tuple[type, Callable[..., Path]]]:
+    from pomil.algos.adversarial import LEARNERS, AdversarialConfig, train_adversarial
     from pomil.algos.bc import BCConfig, train_bc
 
-    return {"bc": (BCConfig, train_bc)}
+    return {"bc": (BCConfig, train_bc), **{name: (AdversarialConfig, train_adversarial) for name in LEARNERS}}
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -171,9 +176,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train a learner on demonstrations")
     train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
+    helps = {"bc": "behaviour cloning (feed-forward or GRU policy)", "gail": "GAIL: MLP networks, no codes, GAN discriminator",
+             "infogail": "InfoGAIL: MLP networks, latent codes, Wasserstein critic",
+             "infogail-pomdp": "InfoGAIL-POMDP (the paper's method): separate GRU belief encoders, codes, Wasserstein critic"}
     for name, (cls, _) in _learners().items():
-        tp = train_sub.add_parser(name, help=(sys.modules[_learners()[name][1].__module__].__doc__ or "").strip().splitlines()[0])
-        add_config_flags(tp, cls)
+        tp = train_sub.add_parser(name, help=helps[name])
+        add_config_flags(tp, cls, fixed={"learner": name} if name != "bc" else None)
         tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         tp.set_defaults(func=cmd_train)
 

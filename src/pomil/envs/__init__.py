@@ -28,3 +28,12 @@ def env_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
         return int(env.observation_space.shape[0]), int(env.action_space.shape[0])
     finally:
         env.close()
+
+
+def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu"):
+    """The batched (torch) environment training uses for ``env_id``."""
+    if env_id == CIRCLES_ID:
+        from pomil.envs.circles import CirclesSpec, CirclesVecEnv
+
+        return CirclesVecEnv(CirclesSpec.from_dict(env_kwargs), num_envs, device)
+    raise ValueError(f"no batched environment for {env_id!r} yet (supported: {CIRCLES_ID})")

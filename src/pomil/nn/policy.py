@@ -48,7 +48,7 @@ class GaussianPolicy(nn.Module):
         return self.encoder.initial_state(batch, device)
 
     def _dist(self, features: torch.Tensor, codes: torch.Tensor | None) -> Normal:
-        if self.code_embed is not None:
+        if self.code_embed is not None:  # codes are ignored by a policy without them
             if codes is None:
                 raise ValueError("this policy has latent codes: pass one-hot codes")
             features = features + self.code_embed(codes)

@@ -1,0 +1,436 @@
+"""Adversarial imitation, one loop for GAIL, InfoGAIL and InfoGAIL-POMDP.
+
+Per iteration:
+
+1. **Rollout**: N episodes, each with a latent code c ~ Uniform{0..K-1}
+   fixed for the episode (one-hot into the policy).
+2. **Critic**: ``critic_steps`` updates on expert vs. policy sequences.
+   Wasserstein (the paper): maximise E_expert[f] - E_policy[f], weights
+   clipped to +-``weight_clip`` (RMSProp, as in the text), or a gradient
+   penalty (Adam).  GAN (Ho & Ermon's GAIL): logistic loss, expert = 1.
+   pomil's critic score f is "higher = more expert-like"; the paper's
+   D_omega is -f, so its policy reward -D is our f.
+3. **Posterior**: cross-entropy of the episode's code under P(c | b(tau; psi), a_t).
+4. **Reward** r_t = norm(f_t) + lambda1 * log P(c | b_t, a_t), where norm
+   standardises the critic term over the batch (zero mean, unit std).  Why:
+   a weight-clipped critic's scores are ~1e-3 and drift in scale as it
+   trains, so without it lambda1 would silently mean something different
+   every iteration; standardised, lambda1 weighs the MI bound against one
+   standard deviation of critic score.  ``normalize_reward=False`` turns it off.
+   GAN critic: the adversarial term is -log(1 - D) = softplus(f).
+5. **PPO + GAE** on policy and value (the entropy bonus lambda2 is
+   ``ent_coef``), in one of two recurrent-update modes: ``sequence`` (whole
+   episodes from their stored initial hidden state) or ``window`` (the
+   paper's bootstrapped random updates: random windows, zero initial state).
+   The critic and posterior train with the same mode.
+
+Learners: ``gail`` (MLP, no codes, GAN critic), ``infogail`` (MLP, codes,
+Wasserstein), ``infogail-pomdp`` (separate GRU belief encoders for policy,
+value, critic and posterior; codes; Wasserstein).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+
+from pomil.api import TrainedPolicy
+from pomil.config import option, to_dict
+from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
+from pomil.envs import make_vec_env
+from pomil.errors import PomilError
+from pomil.nn import heads
+from pomil.nn.heads import BeliefHead
+from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+from pomil.rl.gae import gae
+from pomil.rl.ppo import masked_mean, normalize, ppo_loss
+from pomil.rl.storage import Rollout, window_index
+from pomil.training import (
+    RunLogger, check_resume_config, load_checkpoint, resolve_device, restore_rng, rng_state,
+    save_checkpoint, seed_everything, write_json,
+)
+
+LEARNERS = ("gail", "infogail", "infogail-pomdp")
+PRESETS = {
+    "gail": {"encoder": "mlp", "codes": False, "critic_objective": "gan"},
+    "infogail": {"encoder": "mlp", "codes": True, "critic_objective": "wasserstein"},
+    "infogail-pomdp": {"encoder": "gru", "codes": True, "critic_objective": "wasserstein"},
+}
+
+
+@dataclass(frozen=True)
+class AdversarialConfig:
+    learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp", "which learner (set by the subcommand)")
+    demos: str = option("", "demonstrations .npz to imitate (required)")
+    out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
+    iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)")
+    num_envs: int = option(64, "episodes collected per iteration")
+    num_codes: int = option(-1, "latent codes K; -1 = number of modes in the demonstrations (ignored by gail)")
+    hidden_size: int = option(128, "dense width and GRU cells of every network")
+    lr: float = option(2e-4, "policy learning rate (Adam)")
+    lr_value: float = option(5e-4, "value-function learning rate (Adam)")
+    lr_critic: float = option(2e-4, "critic learning rate")
+    lr_posterior: float = option(2e-4, "posterior learning rate (Adam)")
+    critic_optimizer: Literal["rmsprop", "adam"] = option("rmsprop", "rmsprop (paper text) or adam (paper code)")
+    critic_steps: int = option(5, "critic updates per iteration")
+    critic_batch: int = option(64, "expert and policy episodes per critic update")
+    weight_clip: float = option(0.01, "clip critic weights to +-this after each update (0: off)")
+    gradient_penalty: float = option(0.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam")
+    posterior_steps: int = option(1, "posterior updates per iteration")
+    mi_weight: float = option(1.0, "lambda1: weight of log P(c | b) in the reward")
+    ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss")
+    normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
+    gamma: float = option(0.99, "discount")
+    gae_lambda: float = option(0.95, "GAE lambda")
+    clip: float = option(0.2, "PPO ratio clip")
+    value_clip: float = option(0.0, "PPO value clip (0: off)")
+    ppo_epochs: int = option(4, "PPO epochs per iteration")
+    minibatches: int = option(4, "PPO minibatches per epoch")
+    update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
+    window_length: int = option(8, "steps per window in window mode")
+    log_std_init: float = option(-1.0, "initial log std of the policy")
+    tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
+    eval_every: int = option(25, "iterations between mode evaluations (circles; 0: off)")
+    eval_episodes: int = option(50, "evaluation rollouts per code")
+    seed: int = option(0, "random seed (same seed, same run on CPU)")
+    log_every: int = option(5, "iterations between log rows")
+    checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)")
+    device: str = option("cpu", "cpu, cuda, cuda:N or auto")
+    progress: bool = option(True, "show a progress bar")
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs",
+                     "minibatches", "window_length", "log_every", "checkpoint_every", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.gradient_penalty < 0 or self.weight_clip < 0:
+            raise ValueError("gradient_penalty and weight_clip must be >= 0")
+
+
+@dataclass
+class Modules:
+    policy: GaussianPolicy
+    value: BeliefHead
+    critic: BeliefHead
+    posterior: BeliefHead | None
+
+
+def _first_step_starts(mask: torch.Tensor) -> torch.Tensor:
+    starts = torch.zeros_like(mask)
+    starts[0] = True
+    return starts
+
+
+# ------------------------------------------------------------------ rollout
+@torch.no_grad()
+def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device: torch.device) -> Rollout:
+    """One episode in each of the env's N copies (circles episodes have one fixed length)."""
+    n = env.num_envs
+    obs = env.reset()
+    code_idx = torch.randint(max(num_codes, 1), (n,), generator=generator).to(device)
+    codes = F.one_hot(code_idx, num_codes).float() if num_codes else torch.zeros(n, 0, device=device)
+    h_pi, h_v = m.policy.initial_state(n, device), m.value.initial_state(n, device)
+    h0_pi, h0_v = h_pi.clone(), h_v.clone()
+    prev = torch.zeros(n, m.policy.arch.act_dim, device=device)
+    start = torch.ones(n, dtype=torch.bool, device=device)
+    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "prev", "start", "logp", "value", "term", "trunc")}
+    while True:
+        dist, h_pi = m.policy.step(obs, prev, h_pi, start, codes)
+        action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=generator).to(device)
+        v, h_v = m.value.step(obs, prev, h_v, start, codes)
+        rec["obs"].append(obs)
+        rec["act"].append(action)
+        rec["prev"].append(prev * (~start).unsqueeze(-1))
+        rec["start"].append(start)
+        rec["logp"].append(dist.log_prob(action).sum(-1))
+        rec["value"].append(v)
+        obs, _, term, trunc = env.step(action)
+        rec["term"].append(term)
+        rec["trunc"].append(trunc)
+        prev, start = action, torch.zeros_like(start)
+        if bool((term | trunc).all()):
+            break
+    v_final, _ = m.value.step(obs, prev, h_v, start, codes)
+    st = {k: torch.stack(v) for k, v in rec.items()}
+    T = st["obs"].shape[0]
+    next_values = torch.cat([st["value"][1:], v_final.unsqueeze(0)])
+    roll = Rollout(
+        observations=st["obs"], actions=st["act"], prev_actions=st["prev"], starts=st["start"],
+        codes=codes.unsqueeze(0).expand(T, -1, -1), log_probs=st["logp"], values=st["value"],
+        terminated=st["term"], truncated=st["trunc"], mask=torch.ones(T, n, dtype=torch.bool, device=device),
+        h0_policy=h0_pi, h0_value=h0_v,
+    )
+    return roll, next_values, code_idx
+
+
+# -------------------------------------------------------------- critic, posterior
+def _expert_batch(expert: PaddedEpisodes, cfg: AdversarialConfig, gen: torch.Generator):
+    """(obs, prev_actions, actions, starts, mask) of expert episodes or windows."""
+    T, E = expert.mask.shape
+    if cfg.update_mode == "window":
+        t_idx, e = window_index(T, E, cfg.window_length, cfg.critic_batch, gen)
+    else:
+        e = torch.randint(E, (cfg.critic_batch,), generator=gen)
+        t_idx = torch.arange(T).unsqueeze(1).expand(-1, len(e))
+    dev = expert.mask.device
+    t_idx, e = t_idx.to(dev), e.to(dev)
+    prev_all = shift_actions(expert.actions)
+    ei = e.unsqueeze(0).expand_as(t_idx)
+    mask = expert.mask[t_idx, ei]
+    return expert.observations[t_idx, ei], prev_all[t_idx, ei], expert.actions[t_idx, ei], _first_step_starts(mask), mask
+
+
+def _policy_batch(roll: Rollout, cfg: AdversarialConfig, count: int, gen: torch.Generator) -> Rollout:
+    if cfg.update_mode == "window":
+        return roll.windows(cfg.window_length, count, gen)
+    return roll.columns(torch.randint(roll.num_envs, (count,), generator=gen).to(roll.starts.device))
+
+
+def critic_loss(
+    critic: BeliefHead, expert: tuple, policy: Rollout, objective: str, gp_weight: float,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    e_obs, e_prev, e_act, e_starts, e_mask = expert
+    h0 = critic.initial_state(e_obs.shape[1], e_obs.device)
+    f_exp, _ = critic.unroll(e_obs, e_prev, h0, e_starts, extra=e_act)
+    f_pol, _ = critic.unroll(policy.observations, policy.prev_actions, critic.initial_state(policy.num_envs, e_obs.device),
+                             policy.starts, extra=policy.actions)
+    if objective == "wasserstein":
+        w = masked_mean(f_exp, e_mask) - masked_mean(f_pol, policy.mask)
+        loss = -w
+        stats = {"critic/wasserstein": w.item()}
+    else:
+        loss = (masked_mean(F.binary_cross_entropy_with_logits(f_exp, torch.ones_like(f_exp), reduction="none"), e_mask)
+                + masked_mean(F.binary_cross_entropy_with_logits(f_pol, torch.zeros_like(f_pol), reduction="none"), policy.mask))
+        stats = {"critic/expert_prob": masked_mean(torch.sigmoid(f_exp), e_mask).item(),
+                 "critic/policy_prob": masked_mean(torch.sigmoid(f_pol), policy.mask).item()}
+    if gp_weight > 0:
+        b = min(e_obs.shape[1], policy.num_envs)
+        t = min(e_obs.shape[0], policy.num_steps)
+        alpha = torch.rand(1, b, 1, device=e_obs.device)
+        mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
+        obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.actions)
+        f_i, _ = critic.unroll(obs_i, prev_i, critic.initial_state(b, e_obs.device), e_starts[:t, :b], extra=act_i)
+        grads = torch.autograd.grad(f_i.sum(), (obs_i, prev_i, act_i), create_graph=True)
+        norm = torch.cat(grads, dim=-1).norm(dim=-1)
+        gp = ((norm - 1) ** 2).mean()
+        loss = loss + gp_weight * gp
+        stats["critic/gradient_penalty"] = gp.item()
+    stats["critic/loss"] = loss.item()
+    return loss, stats
+
+
+def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked cross-entropy of each step's code; code_idx_steps (T, B)."""
+    logits, _ = post.unroll(batch.observations, batch.prev_actions, post.initial_state(batch.num_envs, batch.starts.device),
+                            batch.starts, extra=batch.actions)
+    ce = F.cross_entropy(logits.flatten(0, 1), code_idx_steps.flatten(), reduction="none").view_as(code_idx_steps)
+    loss = masked_mean(ce, batch.mask)
+    acc = masked_mean((logits.argmax(-1) == code_idx_steps).float(), batch.mask)
+    return loss, {"posterior/loss": loss.item(), "posterior/accuracy": acc.item()}
+
+
+@torch.no_grad()
+def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig, objective: str) -> tuple[torch.Tensor, dict[str, float]]:
+    dev = roll.starts.device
+    f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev), roll.starts, extra=roll.actions)
+    adv = f if objective == "wasserstein" else F.softplus(f)
+    stats = {"reward/critic_raw_mean": adv.mean().item(), "reward/critic_raw_std": adv.std().item()}
+    if cfg.normalize_reward:
+        adv = normalize(adv, roll.mask)
+    r = adv
+    if m.posterior is not None:
+        logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions, m.posterior.initial_state(roll.num_envs, dev),
+                                       roll.starts, extra=roll.actions)
+        logq = torch.log_softmax(logits, -1).gather(-1, code_idx.view(1, -1, 1).expand(logits.shape[0], -1, 1)).squeeze(-1)
+        r = r + cfg.mi_weight * logq
+        stats["reward/log_posterior"] = logq.mean().item()
+    stats["reward/total"] = r.mean().item()
+    return r, stats
+
+
+# ---------------------------------------------------------------------- train
+def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int, device) -> tuple[Modules, PolicyArch]:
+    preset = PRESETS[cfg.learner]
+    enc = preset["encoder"]
+    arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean)
+    m = Modules(
+        policy=GaussianPolicy(arch).to(device),
+        value=heads.value(obs_dim, act_dim, num_codes, enc, cfg.hidden_size).to(device),
+        critic=heads.critic(obs_dim, act_dim, enc, cfg.hidden_size).to(device),
+        posterior=heads.posterior(obs_dim, act_dim, num_codes, enc, cfg.hidden_size).to(device) if num_codes else None,
+    )
+    return m, arch
+
+
+def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
+    if not PRESETS[cfg.learner]["codes"]:
+        return 0
+    if cfg.num_codes > 0:
+        return cfg.num_codes
+    circles = (demos.metadata.get("env_kwargs") or {}).get("circles")
+    if circles:
+        return len(circles)
+    if demos.labels is not None:
+        return int(len(set(demos.labels.tolist())))
+    return 2
+
+
+def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
+    if not cfg.demos:
+        raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
+    run_dir = Path(cfg.out)
+    ckpt_path = run_dir / "checkpoint.pt"
+    device = resolve_device(cfg.device)
+    demos = Demonstrations.load(cfg.demos)
+    env_id, env_kwargs = check_demos_env(demos, cfg.demos)
+    try:
+        env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device)
+    except ValueError as err:
+        raise PomilError(f"{cfg.demos}: {err}") from None
+    num_codes = resolve_num_codes(cfg, demos)
+    objective = PRESETS[cfg.learner]["critic_objective"]
+    gen = seed_everything(cfg.seed)
+    m, arch = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, device)
+    opt = {
+        "policy": torch.optim.Adam(m.policy.parameters(), lr=cfg.lr),
+        "value": torch.optim.Adam(m.value.parameters(), lr=cfg.lr_value),
+        "critic": (torch.optim.RMSprop(m.critic.parameters(), lr=cfg.lr_critic) if cfg.critic_optimizer == "rmsprop"
+                   else torch.optim.Adam(m.critic.parameters(), lr=cfg.lr_critic, betas=(0.5, 0.9))),
+    }
+    if m.posterior is not None:
+        opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
+    nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
+    start = 0
+    if resume:
+        if not ckpt_path.exists():
+            raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {run_dir})")
+        ckpt = load_checkpoint(ckpt_path, device)
+        check_resume_config(ckpt, to_dict(cfg), ckpt_path)
+        for k, net in nets.items():
+            if net is not None:
+                net.load_state_dict(ckpt["nets"][k])
+        for k, o in opt.items():
+            o.load_state_dict(ckpt["optimizers"][k])
+        restore_rng(ckpt["rng"], gen)
+        start = int(ckpt["iteration"])
+    write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
+    expert = demos.padded(device)
+    logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
+                       key_stats=("eval/nmi", "eval/mean_purity", "posterior/accuracy", "critic/wasserstein"))
+
+    def checkpoint(iteration: int) -> None:
+        logger.flush()
+        save_checkpoint(ckpt_path, {
+            "algo": cfg.learner, "iteration": iteration, "config": to_dict(cfg),
+            "env": {"id": env_id, "kwargs": env_kwargs},
+            "policy_arch": arch.to_dict(), "policy": m.policy.state_dict(),
+            "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
+            "optimizers": {k: o.state_dict() for k, o in opt.items()}, "rng": rng_state(gen),
+        })
+
+    timers = {"rollout": 0.0, "critic": 0.0, "posterior": 0.0, "ppo": 0.0}
+    steps_done = 0
+    t_start = time.perf_counter()
+    for it in range(start + 1, cfg.iterations + 1):
+        stats: dict[str, float] = {}
+        # 1. rollout
+        t0 = time.perf_counter()
+        roll, next_values, code_idx = collect(env, m, num_codes, gen, device)
+        steps_done += roll.num_steps * roll.num_envs
+        t1 = time.perf_counter()
+        # 2. critic
+        for _ in range(cfg.critic_steps):
+            loss, s = critic_loss(m.critic, _expert_batch(expert, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
+                                  objective, cfg.gradient_penalty)
+            opt["critic"].zero_grad(set_to_none=True)
+            loss.backward()
+            opt["critic"].step()
+            if cfg.weight_clip > 0:
+                with torch.no_grad():
+                    for p in m.critic.parameters():
+                        p.clamp_(-cfg.weight_clip, cfg.weight_clip)
+        stats.update(s)
+        t2 = time.perf_counter()
+        # 3. posterior
+        if m.posterior is not None:
+            code_steps = code_idx.unsqueeze(0).expand(roll.num_steps, -1)
+            for _ in range(cfg.posterior_steps):
+                for batch_idx, batch in _posterior_batches(roll, code_steps, cfg, gen):
+                    loss, s = posterior_loss(m.posterior, batch, batch_idx)
+                    opt["posterior"].zero_grad(set_to_none=True)
+                    loss.backward()
+                    opt["posterior"].step()
+            stats.update(s)
+        t3 = time.perf_counter()
+        # 4. rewards and advantages
+        r, s = rewards(m, roll, code_idx, cfg, objective)
+        stats.update(s)
+        adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
+        roll = roll.with_(rewards=r, advantages=adv, returns=ret)
+        # 5. PPO
+        for _ in range(cfg.ppo_epochs):
+            batches = (roll.window_batches(cfg.minibatches, cfg.window_length, gen) if cfg.update_mode == "window"
+                       else roll.sequence_batches(cfg.minibatches, gen))
+            for b in batches:
+                dist, _ = m.policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts, codes=b.codes)
+                new_v, _ = m.value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
+                loss, s = ppo_loss(
+                    dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v, b.values,
+                    b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, cfg.value_clip or None, 0.5, cfg.ent_coef,
+                )
+                opt["policy"].zero_grad(set_to_none=True)
+                opt["value"].zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5)
+                torch.nn.utils.clip_grad_norm_(m.value.parameters(), 0.5)
+                opt["policy"].step()
+                opt["value"].step()
+        stats.update(s)
+        t4 = time.perf_counter()
+        for k, dt in zip(timers, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            timers[k] += dt
+        # 6. evaluation and logging
+        if cfg.eval_every and (it % cfg.eval_every == 0 or it == cfg.iterations) and env_id == "pomil/Circles-v0":
+            stats.update(evaluate_now(m.policy, cfg, env_id, env_kwargs, device))
+        if it % cfg.log_every == 0 or it in (1, cfg.iterations) or any(k.startswith("eval/") for k in stats):
+            elapsed = time.perf_counter() - t_start
+            stats.update({"time/elapsed_s": elapsed, "time/env_steps_per_s": steps_done / max(elapsed, 1e-9),
+                          "policy/log_std": m.policy.log_std.mean().item()})
+            stats.update({f"time/share_{k}": v / max(sum(timers.values()), 1e-9) for k, v in timers.items()})
+            logger.log(it, stats)
+        if it % cfg.checkpoint_every == 0 and it != cfg.iterations:
+            checkpoint(it)
+        logger.update()
+    checkpoint(cfg.iterations)
+    logger.close()
+    return ckpt_path
+
+
+def _posterior_batches(roll: Rollout, code_steps: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):
+    """The whole rollout in sequence mode; as many random windows in window mode."""
+    if cfg.update_mode != "window":
+        yield code_steps, roll
+        return
+    count = max(1, roll.num_steps * roll.num_envs // cfg.window_length)
+    t_idx, env = window_index(roll.num_steps, roll.num_envs, cfg.window_length, count, gen)
+    dev = roll.starts.device
+    t_idx, env = t_idx.to(dev), env.to(dev)
+    batch = roll._gather(t_idx, env, roll.h0_policy[env] * 0, roll.h0_value[env] * 0, zero_first=True)
+    yield code_steps[t_idx, env.unsqueeze(0).expand_as(t_idx)], batch
+
+
+def evaluate_now(policy: GaussianPolicy, cfg: AdversarialConfig, env_id: str, env_kwargs: dict[str, Any], device) -> dict[str, float]:
+    from pomil.eval.rollout import evaluate_circles
+
+    rng_state_before = torch.get_rng_state()
+    metrics, _ = evaluate_circles(TrainedPolicy(policy, cfg.learner, {"id": env_id, "kwargs": env_kwargs}, device),
+                                  cfg.eval_episodes, seed=12345)
+    policy.train()
+    torch.set_rng_state(rng_state_before)
+    return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
+            "eval/modes_covered": float(metrics["modes_covered"]), "eval/none_share": metrics["overall_none_share"]}

@@ -1,0 +1,1 @@
+"""Reinforcement-learning kernels: GAE, PPO loss, rollout storage."""
