@@ -16,6 +16,7 @@ import json
 import math
 import random
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -120,6 +121,7 @@ class RunLogger:
         elif self.csv_path.exists():
             self.csv_path.unlink()
         self._fields: list[str] = list(self._rows[0].keys()) if self._rows else []
+        self._last_flush = time.monotonic()
         self.writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=start if start > 0 else None)
         self.bar = tqdm(
             total=total, initial=start, desc=desc, disable=not progress, dynamic_ncols=True,
@@ -137,6 +139,8 @@ class RunLogger:
         for k, v in stats.items():
             if math.isfinite(float(v)):
                 self.writer.add_scalar(k, float(v), iteration)
+        if time.monotonic() - self._last_flush > 10.0:  # keep metrics.csv current on long runs
+            self.flush()
         shown = {k.split("/")[-1]: f"{float(stats[k]):.4g}" for k in self.key_stats if k in stats}
         self.bar.set_postfix(shown, refresh=False)
 
@@ -152,6 +156,7 @@ class RunLogger:
         data = buf.getvalue().encode()
         atomic_write(self.csv_path, lambda f: f.write(data))
         self.writer.flush()
+        self._last_flush = time.monotonic()
 
     def close(self) -> None:
         self.flush()

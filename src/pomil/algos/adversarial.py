@@ -215,8 +215,9 @@ def critic_loss(
         mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
         obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.actions)
         f_i, _ = critic.unroll(obs_i, prev_i, critic.initial_state(b, e_obs.device), e_starts[:t, :b], extra=act_i)
-        grads = torch.autograd.grad(f_i.sum(), (obs_i, prev_i, act_i), create_graph=True)
-        norm = torch.cat(grads, dim=-1).norm(dim=-1)
+        inputs = (obs_i, prev_i, act_i)
+        grads = torch.autograd.grad(f_i.sum(), inputs, create_graph=True, allow_unused=True)  # MLPs ignore prev
+        norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)], dim=-1).norm(dim=-1)
         gp = ((norm - 1) ** 2).mean()
         loss = loss + gp_weight * gp
         stats["critic/gradient_penalty"] = gp.item()

@@ -1,0 +1,106 @@
+import json
+
+import pytest
+import torch
+
+from pomil.algos.adversarial import AdversarialConfig, critic_loss, posterior_loss, train_adversarial
+from pomil.cli import main
+from pomil.nn import heads
+from pomil.rl.storage import Rollout
+from pomil.training import load_checkpoint
+
+
+def seq_batch(obs, act):
+    T, N, _ = obs.shape
+    starts = torch.zeros(T, N, dtype=torch.bool)
+    starts[0] = True
+    prev = torch.cat([torch.zeros_like(act[:1]), act[:-1]])
+    return obs, prev, act, starts, torch.ones(T, N, dtype=torch.bool)
+
+
+def as_rollout(obs, act, codes=None):
+    o, prev, a, starts, mask = seq_batch(obs, act)
+    T, N, _ = obs.shape
+    z = torch.zeros(T, N)
+    codes = torch.zeros(T, N, 0) if codes is None else codes
+    return Rollout(observations=o, actions=a, prev_actions=prev, starts=starts, codes=codes, log_probs=z, values=z,
+                   terminated=starts & False, truncated=starts & False, mask=mask,
+                   h0_policy=torch.zeros(N, 1), h0_value=torch.zeros(N, 1))
+
+
+@pytest.mark.parametrize("encoder, clip, gp, opt", [("gru", 0.01, 0.0, "rmsprop"), ("mlp", 0.0, 10.0, "adam")])
+def test_critic_steps_increase_the_wasserstein_estimate(encoder, clip, gp, opt):
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(0)
+    expert = seq_batch(torch.randn(12, 32, 2, generator=g) + 1.0, torch.randn(12, 32, 2, generator=g))
+    policy = as_rollout(torch.randn(12, 32, 2, generator=g) - 1.0, torch.randn(12, 32, 2, generator=g))
+    critic = heads.critic(2, 2, encoder, 32)
+    optim = torch.optim.RMSprop(critic.parameters(), lr=5e-3) if opt == "rmsprop" else torch.optim.Adam(critic.parameters(), lr=1e-3)
+    _, first = critic_loss(critic, expert, policy, "wasserstein", gp)
+    for _ in range(30):
+        loss, _ = critic_loss(critic, expert, policy, "wasserstein", gp)
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+        if clip:
+            with torch.no_grad():
+                for p in critic.parameters():
+                    p.clamp_(-clip, clip)
+    _, last = critic_loss(critic, expert, policy, "wasserstein", 0.0)
+    assert last["critic/wasserstein"] > first["critic/wasserstein"] + 1e-3, (first, last)
+    assert last["critic/wasserstein"] > 0
+
+
+def test_posterior_learns_codes_from_code_dependent_sequences():
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(0)
+    T, N, K = 10, 64, 3
+    codes = torch.arange(N) % K
+    # the code shows only in the drift of the observations over time, not in any single step
+    drift = torch.tensor([-1.0, 0.0, 1.0])[codes]
+    obs = (torch.arange(T).view(T, 1, 1) * drift.view(1, N, 1) * 0.3 + torch.randn(T, N, 1, generator=g) * 0.3).expand(T, N, 2).contiguous()
+    act = torch.randn(T, N, 2, generator=g)
+    batch = as_rollout(obs, act)
+    post = heads.posterior(2, 2, K, "gru", 32)
+    optim = torch.optim.Adam(post.parameters(), lr=3e-3)
+    code_steps = codes.unsqueeze(0).expand(T, -1)
+    for _ in range(150):
+        loss, stats = posterior_loss(post, batch, code_steps)
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+    assert stats["posterior/loss"] < 0.5 * torch.log(torch.tensor(3.0)).item()
+    assert stats["posterior/accuracy"] > 0.8
+
+
+def _cfg(demos_path, out, **kw):
+    base = dict(demos=str(demos_path), out=str(out), iterations=3, num_envs=8, hidden_size=16, critic_steps=1,
+                critic_batch=8, ppo_epochs=1, minibatches=2, eval_every=2, eval_episodes=4, progress=False, log_every=1)
+    base.update(kw)
+    return AdversarialConfig(**base)
+
+
+@pytest.mark.parametrize("learner", ["gail", "infogail", "infogail-pomdp"])
+@pytest.mark.parametrize("mode", ["sequence", "window"])
+def test_every_learner_runs_a_few_iterations_through_the_cli(learner, mode, demos_path, tmp_path):
+    out = tmp_path / learner
+    code = main(["train", learner, "--demos", str(demos_path), "--out", str(out), "--iterations", "3", "--num-envs", "8",
+                 "--hidden-size", "16", "--critic-steps", "1", "--ppo-epochs", "1", "--update-mode", mode,
+                 "--window-length", "5", "--eval-every", "2", "--eval-episodes", "4", "--no-progress"])
+    assert code == 0
+    ckpt = load_checkpoint(out / "checkpoint.pt")
+    assert ckpt["algo"] == learner and ckpt["iteration"] == 3
+    assert ckpt["policy_arch"]["num_codes"] == (0 if learner == "gail" else 2)
+    assert ckpt["policy_arch"]["encoder"] == ("gru" if learner == "infogail-pomdp" else "mlp")
+    assert (set(ckpt["nets"]) == {"policy", "value", "critic"} | (set() if learner == "gail" else {"posterior"}))
+    assert main(["evaluate", str(out), "--episodes-per-code", "3", "--json"]) == 0
+
+
+def test_adversarial_same_seed_same_run_and_resume(demos_path, tmp_path):
+    a = train_adversarial(_cfg(demos_path, tmp_path / "a", iterations=4, checkpoint_every=2))
+    b = train_adversarial(_cfg(demos_path, tmp_path / "b", iterations=2, checkpoint_every=2))
+    b = train_adversarial(_cfg(demos_path, tmp_path / "b", iterations=4, checkpoint_every=2), resume=True)
+    na, nb = load_checkpoint(a)["nets"], load_checkpoint(b)["nets"]
+    for net in na:
+        for k in na[net]:
+            assert torch.equal(na[net][k], nb[net][k]), (net, k)
