@@ -80,10 +80,11 @@ def test_every_option_has_help_with_its_default():
 def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     out = tmp_path / "results"
     r = pomil("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
+              "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2,
               "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz", "--no-progress")
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["learners"]) == {"bc-mlp", "bc-gru"}
+    assert set(metrics["learners"]) == {"bc-mlp", "bc-gru", "gail"}
     assert len(metrics["learners"]["bc-gru"]["runs"]) == 2
     assert "| bc-mlp |" in (out / "table.md").read_text()
     assert (out / "figure.png").stat().st_size > 1000

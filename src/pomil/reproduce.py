@@ -38,8 +38,9 @@ class CirclesReproConfig:
     runs: str = option("runs/circles", "where each run's checkpoint and logs go")
     demos: str = option("data/circles.npz", "demonstrations; recorded (400 episodes, seed 0) if missing")
     seeds: int = option(3, "training seeds per learner (0 .. seeds-1)")
-    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru"), "comma-separated learners to run")
+    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru"), "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
     bc_iterations: int = option(1500, "gradient steps for behaviour cloning")
+    adversarial_iterations: int = option(300, "iterations for gail, infogail and infogail-pomdp")
     episodes_per_code: int = option(100, "evaluation rollouts per latent code")
     progress: bool = option(True, "show progress bars")
 
@@ -60,9 +61,21 @@ def _bc(policy: str) -> Callable[[CirclesReproConfig, int, Path], Path]:
     return run
 
 
+def _adversarial(learner: str) -> Callable[[CirclesReproConfig, int, Path], Path]:
+    def run(cfg: CirclesReproConfig, seed: int, run_dir: Path) -> Path:
+        from pomil.algos.adversarial import AdversarialConfig, train_adversarial
+
+        return train_adversarial(AdversarialConfig(learner=learner, demos=cfg.demos, out=str(run_dir),
+                                                   iterations=cfg.adversarial_iterations, seed=seed, progress=cfg.progress))
+    return run
+
+
 LEARNERS: dict[str, Callable[[CirclesReproConfig, int, Path], Path]] = {
     "bc-mlp": _bc("mlp"),
     "bc-gru": _bc("gru"),
+    "gail": _adversarial("gail"),
+    "infogail": _adversarial("infogail"),
+    "infogail-pomdp": _adversarial("infogail-pomdp"),
 }
 SUMMARY_KEYS = ("mean_purity", "min_purity", "modes_covered", "nmi", "overall_none_share")
 
