@@ -60,3 +60,9 @@ def test_loading_a_foreign_file_is_a_one_line_error(tmp_path):
         TrainedPolicy.load(bad)
     with pytest.raises(PomilError, match="no such checkpoint"):
         TrainedPolicy.load(tmp_path / "missing.pt")
+
+
+def test_public_names_import_from_the_package():
+    from pomil import Demonstrations as D, TrainedPolicy as T
+
+    assert T is TrainedPolicy and D.__name__ == "Demonstrations"

@@ -1,5 +1,8 @@
 """pomil: multi-modal imitation learning in partially observable environments."""
 
 import pomil.envs  # noqa: F401  (registers pomil/Circles-v0)
+from pomil.api import TrainedPolicy
+from pomil.data import Demonstrations
 
+__all__ = ["Demonstrations", "TrainedPolicy"]
 __version__ = "0.1.0"

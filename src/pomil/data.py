@@ -127,7 +127,7 @@ class Demonstrations:
     def padded(self, device: torch.device | str = "cpu") -> "PaddedEpisodes":
         """All episodes as time-major (T_max, E, ...) tensors with a validity mask."""
         lengths = self.episode_lengths
-        t_max, n_ep = int(lengths.max()), self.num_episodes
+        t_max = int(lengths.max())
         step = np.arange(t_max)[:, None]
         mask = step < lengths[None, :]
         rows = np.where(mask, self.episode_bounds[:-1][None, :] + step, 0)

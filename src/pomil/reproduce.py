@@ -88,7 +88,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, list[float]]:
 def markdown_table(results: dict[str, Any]) -> str:
     n = results["seeds"]
     lines = [
-        f"| learner | per-code purity | min purity | modes covered | NMI(code, mode) | none share | wall s / seed |",
+        "| learner | per-code purity | min purity | modes covered | NMI(code, mode) | none share | wall s / seed |",
         "|---|---|---|---|---|---|---|",
     ]
     for name, r in results["learners"].items():

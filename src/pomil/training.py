@@ -85,6 +85,29 @@ def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str 
         raise PomilError(f"{path}: cannot resume with a different config (changed: {', '.join(changed)})")
 
 
+def resume_run(
+    ckpt_path: Path, config: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, Any],
+    generator: torch.Generator, device: torch.device | str = "cpu",
+) -> int:
+    """Restore networks, optimisers and RNGs from a run's checkpoint; returns its iteration.
+
+    ``nets`` maps a key of the checkpoint's ``nets`` (or ``policy``) to a module;
+    None entries are skipped.
+    """
+    if not ckpt_path.exists():
+        raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {ckpt_path.parent})")
+    ckpt = load_checkpoint(ckpt_path, device)
+    check_resume_config(ckpt, config, ckpt_path)
+    saved_nets = ckpt.get("nets", {"policy": ckpt.get("policy")})
+    for k, net in nets.items():
+        if net is not None:
+            net.load_state_dict(saved_nets[k])
+    for k, opt in optimizers.items():
+        opt.load_state_dict(ckpt["optimizers"][k])
+    restore_rng(ckpt["rng"], generator)
+    return int(ckpt["iteration"])
+
+
 def rng_state(generator: torch.Generator) -> dict[str, torch.Tensor]:
     return {"torch": torch.get_rng_state(), "generator": generator.get_state()}
 

@@ -51,7 +51,7 @@ from pomil.rl.gae import gae
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import (
-    RunLogger, check_resume_config, load_checkpoint, resolve_device, restore_rng, rng_state,
+    RunLogger, resolve_device, resume_run, rng_state,
     save_checkpoint, seed_everything, write_json,
 )
 
@@ -128,8 +128,11 @@ def _first_step_starts(mask: torch.Tensor) -> torch.Tensor:
 
 # ------------------------------------------------------------------ rollout
 @torch.no_grad()
-def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device: torch.device) -> Rollout:
-    """One episode in each of the env's N copies (circles episodes have one fixed length)."""
+def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device: torch.device) -> tuple[Rollout, torch.Tensor, torch.Tensor]:
+    """One episode in each of the env's N copies (circles episodes have one fixed length).
+
+    Returns (rollout, next_values (T, N) = V(s_{t+1}) with the final observation's
+    value at the last step, code index per env (N,))."""
     n = env.num_envs
     obs = env.reset()
     code_idx = torch.randint(max(num_codes, 1), (n,), generator=generator).to(device)
@@ -306,19 +309,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     if m.posterior is not None:
         opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
     nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
-    start = 0
-    if resume:
-        if not ckpt_path.exists():
-            raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {run_dir})")
-        ckpt = load_checkpoint(ckpt_path, device)
-        check_resume_config(ckpt, to_dict(cfg), ckpt_path)
-        for k, net in nets.items():
-            if net is not None:
-                net.load_state_dict(ckpt["nets"][k])
-        for k, o in opt.items():
-            o.load_state_dict(ckpt["optimizers"][k])
-        restore_rng(ckpt["rng"], gen)
-        start = int(ckpt["iteration"])
+    start = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else 0
     write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
     expert = demos.padded(device)
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,

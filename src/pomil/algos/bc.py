@@ -21,7 +21,7 @@ from pomil.data import Demonstrations, check_demos_env
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import (
-    RunLogger, check_resume_config, load_checkpoint, resolve_device, restore_rng, rng_state, save_checkpoint,
+    RunLogger, resolve_device, resume_run, rng_state, save_checkpoint,
     seed_everything, write_json,
 )
 
@@ -75,16 +75,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
     policy = GaussianPolicy(arch).to(device)
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
-    start = 0
-    if resume:
-        if not ckpt_path.exists():
-            raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {run_dir})")
-        ckpt = load_checkpoint(ckpt_path, device)
-        check_resume_config(ckpt, to_dict(config), ckpt_path)
-        policy.load_state_dict(ckpt["policy"])
-        optimizer.load_state_dict(ckpt["optimizers"]["policy"])
-        restore_rng(ckpt["rng"], generator)
-        start = int(ckpt["iteration"])
+    start = resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device) if resume else 0
     write_json(run_dir / "config.json", {"algo": "bc", **to_dict(config)})
 
     data = demos.padded(device)
