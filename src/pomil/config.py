@@ -111,3 +111,29 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
 def to_dict(config: Any) -> dict[str, Any]:
     """Plain JSON-able dict of a config dataclass (tuples become lists)."""
     return json.loads(json.dumps(dataclasses.asdict(config)))
+
+
+def check_positive(config: Any, *names: str) -> None:
+    """Raise ValueError unless every named field is >= 1."""
+    for name in names:
+        if getattr(config, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(config, name)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Options every learner's run has (the one thin base of the learner configs).
+
+    Subclasses may redeclare a field to change its default.
+    """
+
+    demos: str = option("", "demonstrations .npz to imitate (required)")
+    out: str = option("runs/run", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
+    seed: int = option(0, "random seed (same seed, same run on CPU)")
+    log_every: int = option(25, "iterations between log rows")
+    checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)")
+    device: str = option("cpu", "cpu, cuda, cuda:N or auto")
+    progress: bool = option(True, "show a progress bar")
+
+    def __post_init__(self) -> None:
+        check_positive(self, "log_every", "checkpoint_every")

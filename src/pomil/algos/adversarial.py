@@ -40,7 +40,7 @@ import torch
 import torch.nn.functional as F
 
 from pomil.api import TrainedPolicy
-from pomil.config import option, to_dict
+from pomil.config import RunConfig, check_positive, option, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
 from pomil.envs import make_vec_env
 from pomil.errors import PomilError
@@ -64,9 +64,8 @@ PRESETS = {
 
 
 @dataclass(frozen=True)
-class AdversarialConfig:
+class AdversarialConfig(RunConfig):
     learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp", "which learner (set by the subcommand)")
-    demos: str = option("", "demonstrations .npz to imitate (required)")
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)")
     num_envs: int = option(64, "episodes collected per iteration")
@@ -97,17 +96,13 @@ class AdversarialConfig:
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
     eval_every: int = option(25, "iterations between mode evaluations (circles; 0: off)")
     eval_episodes: int = option(50, "evaluation rollouts per code")
-    seed: int = option(0, "random seed (same seed, same run on CPU)")
     log_every: int = option(5, "iterations between log rows")
     checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)")
-    device: str = option("cpu", "cpu, cuda, cuda:N or auto")
-    progress: bool = option(True, "show a progress bar")
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs",
-                     "minibatches", "window_length", "log_every", "checkpoint_every", "eval_episodes"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        super().__post_init__()
+        check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs",
+                       "minibatches", "window_length", "eval_episodes")
         if self.gradient_penalty < 0 or self.weight_clip < 0:
             raise ValueError("gradient_penalty and weight_clip must be >= 0")
 
@@ -172,8 +167,11 @@ def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device:
 
 
 # -------------------------------------------------------------- critic, posterior
-def _expert_batch(expert: PaddedEpisodes, cfg: AdversarialConfig, gen: torch.Generator):
-    """(obs, prev_actions, actions, starts, mask) of expert episodes or windows."""
+def _expert_batch(expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):
+    """(obs, prev_actions, actions, starts, mask) of expert episodes or windows.
+
+    ``expert_prev`` = shift_actions(expert.actions), computed once per run.
+    """
     T, E = expert.mask.shape
     if cfg.update_mode == "window":
         t_idx, e = window_index(T, E, cfg.window_length, cfg.critic_batch, gen)
@@ -182,10 +180,9 @@ def _expert_batch(expert: PaddedEpisodes, cfg: AdversarialConfig, gen: torch.Gen
         t_idx = torch.arange(T).unsqueeze(1).expand(-1, len(e))
     dev = expert.mask.device
     t_idx, e = t_idx.to(dev), e.to(dev)
-    prev_all = shift_actions(expert.actions)
     ei = e.unsqueeze(0).expand_as(t_idx)
     mask = expert.mask[t_idx, ei]
-    return expert.observations[t_idx, ei], prev_all[t_idx, ei], expert.actions[t_idx, ei], _first_step_starts(mask), mask
+    return expert.observations[t_idx, ei], expert_prev[t_idx, ei], expert.actions[t_idx, ei], _first_step_starts(mask), mask
 
 
 def _policy_batch(roll: Rollout, cfg: AdversarialConfig, count: int, gen: torch.Generator) -> Rollout:
@@ -312,6 +309,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     start = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else 0
     write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
     expert = demos.padded(device)
+    expert_prev = shift_actions(expert.actions)
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
                        key_stats=("eval/nmi", "eval/mean_purity", "posterior/accuracy", "critic/wasserstein"))
 
@@ -337,7 +335,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         t1 = time.perf_counter()
         # 2. critic
         for _ in range(cfg.critic_steps):
-            loss, s = critic_loss(m.critic, _expert_batch(expert, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
+            loss, s = critic_loss(m.critic, _expert_batch(expert, expert_prev, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
                                   objective, cfg.gradient_penalty)
             opt["critic"].zero_grad(set_to_none=True)
             loss.backward()

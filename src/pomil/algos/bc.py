@@ -16,7 +16,7 @@ from typing import Literal
 
 import torch
 
-from pomil.config import option, to_dict
+from pomil.config import RunConfig, check_positive, option, to_dict
 from pomil.data import Demonstrations, check_demos_env
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
@@ -27,8 +27,7 @@ from pomil.training import (
 
 
 @dataclass(frozen=True)
-class BCConfig:
-    demos: str = option("", "demonstrations .npz to imitate (required)")
+class BCConfig(RunConfig):
     out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     policy: Literal["mlp", "gru"] = option("gru", "mlp: current observation only; gru: belief over the history")
     hidden_size: int = option(128, "width of the dense layers and GRU cells")
@@ -36,16 +35,10 @@ class BCConfig:
     batch_episodes: int = option(64, "whole episodes per minibatch")
     lr: float = option(1e-3, "Adam learning rate")
     log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy")
-    seed: int = option(0, "random seed (same seed, same run on CPU)")
-    log_every: int = option(25, "iterations between log rows")
-    checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)")
-    device: str = option("cpu", "cpu, cuda, cuda:N or auto")
-    progress: bool = option(True, "show a progress bar")
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "batch_episodes", "hidden_size", "log_every", "checkpoint_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        super().__post_init__()
+        check_positive(self, "iterations", "batch_episodes", "hidden_size")
         if self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
 
