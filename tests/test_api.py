@@ -66,3 +66,21 @@ def test_public_names_import_from_the_package():
     from pomil import Demonstrations as D, TrainedPolicy as T
 
     assert T is TrainedPolicy and D.__name__ == "Demonstrations"
+
+
+def test_previous_action_is_fed_back_as_the_environment_executed_it():
+    from pomil.envs.circles import executed_actions
+    from pomil.nn.policy import shift_actions
+
+    p = _policy()
+    p.reset(2)
+    obs = np.random.default_rng(0).normal(size=(4, 2, 2)).astype(np.float32)
+    acts = torch.as_tensor(np.stack([p.act(o, deterministic=True) for o in obs]))
+    starts = torch.zeros(4, 2, dtype=torch.bool)
+    starts[0] = True
+    with torch.no_grad():
+        dist, _ = p.policy.unroll(torch.as_tensor(obs), shift_actions(executed_actions(acts, "vector")),
+                                  p.policy.initial_state(2), starts)
+        raw, _ = p.policy.unroll(torch.as_tensor(obs), shift_actions(acts), p.policy.initial_state(2), starts)
+    torch.testing.assert_close(dist.mean, acts)
+    assert not torch.allclose(raw.mean, acts)

@@ -79,12 +79,15 @@ def test_every_option_has_help_with_its_default():
 
 def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     out = tmp_path / "results"
+    (tmp_path / "adv.json").write_text(json.dumps({"bc_init_iterations": 3, "num_envs": 8, "hidden_size": 16}))
     r = pomil("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
-              "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2,
+              "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2, "--adversarial-config", tmp_path / "adv.json",
               "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz", "--no-progress")
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics["learners"]) == {"bc-mlp", "bc-gru", "gail"}
     assert len(metrics["learners"]["bc-gru"]["runs"]) == 2
+    settings = metrics["adversarial_settings"]
+    assert settings["gradient_penalty"] == 10.0 and settings["bc_init_iterations"] == 3 and settings["iterations"] == 2
     assert "| bc-mlp |" in (out / "table.md").read_text()
     assert (out / "figure.png").stat().st_size > 1000

@@ -18,6 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from pomil.envs import executed_actions_fn
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.training import load_checkpoint
@@ -30,6 +31,7 @@ class TrainedPolicy:
         self.env = env
         self.device = torch.device(device)
         self._h: torch.Tensor | None = None
+        self._executed = executed_actions_fn(env["id"], env.get("kwargs") or {}) if env.get("id") else (lambda a: a)
 
     @classmethod
     def load(cls, path: str | Path, device: torch.device | str = "cpu") -> "TrainedPolicy":
@@ -87,6 +89,6 @@ class TrainedPolicy:
             action = dist.mean
         else:
             action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=self._gen, device=self.device)
-        self._prev = action
+        self._prev = self._executed(action)  # a_{t-1} as the environment carried it out, as in training
         self._start = torch.zeros_like(self._start)
         return action.cpu().numpy() if as_numpy else action

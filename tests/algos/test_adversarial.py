@@ -3,8 +3,9 @@ import json
 import pytest
 import torch
 
-from pomil.algos.adversarial import AdversarialConfig, critic_loss, posterior_loss, train_adversarial
+from pomil.algos.adversarial import AdversarialConfig, build_modules, collect, critic_loss, posterior_loss, train_adversarial
 from pomil.cli import main
+from pomil.envs import make_vec_env
 from pomil.nn import heads
 from pomil.rl.storage import Rollout
 from pomil.training import load_checkpoint
@@ -75,7 +76,8 @@ def test_posterior_learns_codes_from_code_dependent_sequences():
 
 def _cfg(demos_path, out, **kw):
     base = dict(demos=str(demos_path), out=str(out), iterations=3, num_envs=8, hidden_size=16, critic_steps=1,
-                critic_batch=8, ppo_epochs=1, minibatches=2, eval_every=2, eval_episodes=4, progress=False, log_every=1)
+                critic_batch=8, ppo_epochs=1, minibatches=2, eval_every=2, eval_episodes=4, progress=False, log_every=1,
+                bc_init_iterations=0)
     base.update(kw)
     return AdversarialConfig(**base)
 
@@ -86,7 +88,8 @@ def test_every_learner_runs_a_few_iterations_through_the_cli(learner, mode, demo
     out = tmp_path / learner
     code = main(["train", learner, "--demos", str(demos_path), "--out", str(out), "--iterations", "3", "--num-envs", "8",
                  "--hidden-size", "16", "--critic-steps", "1", "--ppo-epochs", "1", "--update-mode", mode,
-                 "--window-length", "5", "--eval-every", "2", "--eval-episodes", "4", "--no-progress"])
+                 "--window-length", "5", "--eval-every", "2", "--eval-episodes", "4", "--bc-init-iterations", "2",
+                 "--no-progress"])
     assert code == 0
     ckpt = load_checkpoint(out / "checkpoint.pt")
     assert ckpt["algo"] == learner and ckpt["iteration"] == 3
@@ -104,3 +107,37 @@ def test_adversarial_same_seed_same_run_and_resume(demos_path, tmp_path):
     for net in na:
         for k in na[net]:
             assert torch.equal(na[net][k], nb[net][k]), (net, k)
+
+
+def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_path):
+    m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), 2, 2, 2, "cpu")
+    env = make_vec_env("pomil/Circles-v0", {}, 8)
+    roll, _, _, env_return = collect(env, m, 2, torch.Generator().manual_seed(0), torch.device("cpu"))
+    norms = roll.executed_actions.norm(dim=-1)
+    torch.testing.assert_close(norms, torch.ones_like(norms))  # expert demonstrations hold unit vectors too
+    assert not torch.allclose(roll.actions.norm(dim=-1), norms)  # the raw Gaussian samples do not
+    torch.testing.assert_close(roll.prev_actions[1:], roll.executed_actions[:-1])
+    assert (roll.prev_actions[0] == 0).all()
+    positions = roll.observations[-1] + roll.executed_actions[-1]  # where the episode ended
+    torch.testing.assert_close(positions, env.positions)
+    assert env_return.shape == (8,) and (env_return <= 0).all()
+
+
+def test_bc_warm_start_puts_the_policy_on_the_circles(demos_path, tmp_path):
+    from pomil.api import TrainedPolicy
+    from pomil.eval.rollout import evaluate_circles
+
+    none = {}
+    for warm in (0, 250):
+        ckpt = train_adversarial(_cfg(demos_path, tmp_path / str(warm), learner="infogail", iterations=1, hidden_size=64,
+                                      bc_init_iterations=warm, num_envs=32, eval_every=0))
+        metrics, _ = evaluate_circles(TrainedPolicy.load(ckpt), 20, seed=0)
+        none[warm] = metrics["overall_none_share"]
+    assert none[250] <= 0.1 < none[0], none
+
+
+def test_gan_critic_is_never_weight_clipped(demos_path, tmp_path):
+    ckpt = train_adversarial(_cfg(demos_path, tmp_path / "gail", learner="gail", weight_clip=0.01, critic_steps=2))
+    assert max(p.abs().max().item() for p in load_checkpoint(ckpt)["nets"]["critic"].values()) > 0.01
+    ckpt = train_adversarial(_cfg(demos_path, tmp_path / "wgan", learner="infogail", weight_clip=0.01, critic_steps=2))
+    assert max(p.abs().max().item() for p in load_checkpoint(ckpt)["nets"]["critic"].values()) <= 0.01

@@ -149,3 +149,18 @@ def test_gymnasium_env_uses_the_spec_options():
     env = CirclesEnv(circles=[[0, 3, 3, 1]], episode_length=7, history=2)
     assert env.observation_space.shape == (4,)
     assert env.spec_.num_modes == 1 and env.spec_.circles[0].radius == 3
+
+
+def test_executed_actions_are_what_the_environment_carries_out():
+    from pomil.envs import executed_actions_fn
+
+    raw = torch.tensor([[3.0, 4.0], [0.0, 0.0], [-0.1, 0.0]])
+    vec = executed_actions_fn("pomil/Circles-v0", {})(raw)
+    torch.testing.assert_close(vec, torch.tensor([[0.6, 0.8], [0.0, 0.0], [-1.0, 0.0]]))
+    env = CirclesVecEnv(make_spec(), 3)
+    env.reset()
+    before = env.positions.clone()
+    env.step(raw)
+    torch.testing.assert_close(env.positions - before, vec)  # the env moved exactly by the executed actions
+    ang = executed_actions_fn("pomil/Circles-v0", {"action_type": "angle"})(torch.tensor([[0.5], [0.5 + 2 * math.pi], [-3 * math.pi / 2]]))
+    torch.testing.assert_close(ang, torch.tensor([[0.5], [0.5], [math.pi / 2]]))

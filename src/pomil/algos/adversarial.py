@@ -31,14 +31,16 @@ value, critic and posterior; codes; Wasserstein).
 
 from __future__ import annotations
 
+import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
 
+from pomil.algos.bc import bc_loss
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, check_positive, option, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
@@ -76,22 +78,24 @@ class AdversarialConfig(RunConfig):
     lr_critic: float = option(2e-4, "critic learning rate")
     lr_posterior: float = option(2e-4, "posterior learning rate (Adam)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("rmsprop", "rmsprop (paper text) or adam (paper code)")
-    critic_steps: int = option(5, "critic updates per iteration")
+    critic_steps: int = option(3, "critic updates per iteration")
     critic_batch: int = option(64, "expert and policy episodes per critic update")
-    weight_clip: float = option(0.01, "clip critic weights to +-this after each update (0: off)")
+    weight_clip: float = option(0.01, "clip Wasserstein critic weights to +-this after each update (0: off; never for GAIL's GAN critic)")
     gradient_penalty: float = option(0.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam")
     posterior_steps: int = option(1, "posterior updates per iteration")
-    mi_weight: float = option(1.0, "lambda1: weight of log P(c | b) in the reward")
+    mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)")
     ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
     gamma: float = option(0.99, "discount")
     gae_lambda: float = option(0.95, "GAE lambda")
     clip: float = option(0.2, "PPO ratio clip")
     value_clip: float = option(0.0, "PPO value clip (0: off)")
-    ppo_epochs: int = option(4, "PPO epochs per iteration")
+    ppo_epochs: int = option(2, "PPO epochs per iteration")
     minibatches: int = option(4, "PPO minibatches per epoch")
     update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
     window_length: int = option(8, "steps per window in window mode")
+    bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)")
+    bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start")
     log_std_init: float = option(-1.0, "initial log std of the policy")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
     eval_every: int = option(25, "iterations between mode evaluations (circles; 0: off)")
@@ -103,6 +107,8 @@ class AdversarialConfig(RunConfig):
         super().__post_init__()
         check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs",
                        "minibatches", "window_length", "eval_episodes")
+        if self.bc_init_iterations < 0:
+            raise ValueError(f"bc_init_iterations must be >= 0, got {self.bc_init_iterations}")
         if self.gradient_penalty < 0 or self.weight_clip < 0:
             raise ValueError("gradient_penalty and weight_clip must be >= 0")
 
@@ -123,11 +129,13 @@ def _first_step_starts(mask: torch.Tensor) -> torch.Tensor:
 
 # ------------------------------------------------------------------ rollout
 @torch.no_grad()
-def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device: torch.device) -> tuple[Rollout, torch.Tensor, torch.Tensor]:
+def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device: torch.device
+            ) -> tuple[Rollout, torch.Tensor, torch.Tensor, torch.Tensor]:
     """One episode in each of the env's N copies (circles episodes have one fixed length).
 
     Returns (rollout, next_values (T, N) = V(s_{t+1}) with the final observation's
-    value at the last step, code index per env (N,))."""
+    value at the last step, code index per env (N,), the environment's own
+    return per env (N,): never used for learning, logged as a diagnostic)."""
     n = env.num_envs
     obs = env.reset()
     code_idx = torch.randint(max(num_codes, 1), (n,), generator=generator).to(device)
@@ -136,21 +144,25 @@ def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device:
     h0_pi, h0_v = h_pi.clone(), h_v.clone()
     prev = torch.zeros(n, m.policy.arch.act_dim, device=device)
     start = torch.ones(n, dtype=torch.bool, device=device)
-    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "prev", "start", "logp", "value", "term", "trunc")}
+    env_return = torch.zeros(n, device=device)
+    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "exec", "prev", "start", "logp", "value", "term", "trunc")}
     while True:
         dist, h_pi = m.policy.step(obs, prev, h_pi, start, codes)
         action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=generator).to(device)
         v, h_v = m.value.step(obs, prev, h_v, start, codes)
+        executed = env.executed_actions(action)
         rec["obs"].append(obs)
         rec["act"].append(action)
+        rec["exec"].append(executed)
         rec["prev"].append(prev * (~start).unsqueeze(-1))
         rec["start"].append(start)
         rec["logp"].append(dist.log_prob(action).sum(-1))
         rec["value"].append(v)
-        obs, _, term, trunc = env.step(action)
+        obs, env_reward, term, trunc = env.step(action)
+        env_return = env_return + env_reward
         rec["term"].append(term)
         rec["trunc"].append(trunc)
-        prev, start = action, torch.zeros_like(start)
+        prev, start = executed, torch.zeros_like(start)
         if bool((term | trunc).all()):
             break
     v_final, _ = m.value.step(obs, prev, h_v, start, codes)
@@ -158,12 +170,12 @@ def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device:
     T = st["obs"].shape[0]
     next_values = torch.cat([st["value"][1:], v_final.unsqueeze(0)])
     roll = Rollout(
-        observations=st["obs"], actions=st["act"], prev_actions=st["prev"], starts=st["start"],
+        observations=st["obs"], actions=st["act"], env_actions=st["exec"], prev_actions=st["prev"], starts=st["start"],
         codes=codes.unsqueeze(0).expand(T, -1, -1), log_probs=st["logp"], values=st["value"],
         terminated=st["term"], truncated=st["trunc"], mask=torch.ones(T, n, dtype=torch.bool, device=device),
         h0_policy=h0_pi, h0_value=h0_v,
     )
-    return roll, next_values, code_idx
+    return roll, next_values, code_idx, env_return
 
 
 # -------------------------------------------------------------- critic, posterior
@@ -195,10 +207,16 @@ def critic_loss(
     critic: BeliefHead, expert: tuple, policy: Rollout, objective: str, gp_weight: float,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     e_obs, e_prev, e_act, e_starts, e_mask = expert
-    h0 = critic.initial_state(e_obs.shape[1], e_obs.device)
-    f_exp, _ = critic.unroll(e_obs, e_prev, h0, e_starts, extra=e_act)
-    f_pol, _ = critic.unroll(policy.observations, policy.prev_actions, critic.initial_state(policy.num_envs, e_obs.device),
-                             policy.starts, extra=policy.actions)
+    p_inputs = (policy.observations, policy.prev_actions, policy.executed_actions, policy.starts)
+    if e_obs.shape[0] == policy.num_steps:  # one unroll over expert and policy columns side by side
+        n = e_obs.shape[1]
+        obs, prev, act, starts = (torch.cat([e, p], dim=1) for e, p in zip((e_obs, e_prev, e_act, e_starts), p_inputs))
+        f, _ = critic.unroll(obs, prev, critic.initial_state(obs.shape[1], obs.device), starts, extra=act)
+        f_exp, f_pol = f[:, :n], f[:, n:]
+    else:
+        f_exp, _ = critic.unroll(e_obs, e_prev, critic.initial_state(e_obs.shape[1], e_obs.device), e_starts, extra=e_act)
+        f_pol, _ = critic.unroll(p_inputs[0], p_inputs[1], critic.initial_state(policy.num_envs, e_obs.device),
+                                 p_inputs[3], extra=p_inputs[2])
     if objective == "wasserstein":
         w = masked_mean(f_exp, e_mask) - masked_mean(f_pol, policy.mask)
         loss = -w
@@ -213,7 +231,7 @@ def critic_loss(
         t = min(e_obs.shape[0], policy.num_steps)
         alpha = torch.rand(1, b, 1, device=e_obs.device)
         mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
-        obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.actions)
+        obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.executed_actions)
         f_i, _ = critic.unroll(obs_i, prev_i, critic.initial_state(b, e_obs.device), e_starts[:t, :b], extra=act_i)
         inputs = (obs_i, prev_i, act_i)
         grads = torch.autograd.grad(f_i.sum(), inputs, create_graph=True, allow_unused=True)  # MLPs ignore prev
@@ -228,7 +246,7 @@ def critic_loss(
 def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked cross-entropy of each step's code; code_idx_steps (T, B)."""
     logits, _ = post.unroll(batch.observations, batch.prev_actions, post.initial_state(batch.num_envs, batch.starts.device),
-                            batch.starts, extra=batch.actions)
+                            batch.starts, extra=batch.executed_actions)
     ce = F.cross_entropy(logits.flatten(0, 1), code_idx_steps.flatten(), reduction="none").view_as(code_idx_steps)
     loss = masked_mean(ce, batch.mask)
     acc = masked_mean((logits.argmax(-1) == code_idx_steps).float(), batch.mask)
@@ -238,7 +256,7 @@ def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tenso
 @torch.no_grad()
 def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig, objective: str) -> tuple[torch.Tensor, dict[str, float]]:
     dev = roll.starts.device
-    f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev), roll.starts, extra=roll.actions)
+    f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev), roll.starts, extra=roll.executed_actions)
     adv = f if objective == "wasserstein" else F.softplus(f)
     stats = {"reward/critic_raw_mean": adv.mean().item(), "reward/critic_raw_std": adv.std().item()}
     if cfg.normalize_reward:
@@ -246,7 +264,7 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
     r = adv
     if m.posterior is not None:
         logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions, m.posterior.initial_state(roll.num_envs, dev),
-                                       roll.starts, extra=roll.actions)
+                                       roll.starts, extra=roll.executed_actions)
         logq = torch.log_softmax(logits, -1).gather(-1, code_idx.view(1, -1, 1).expand(logits.shape[0], -1, 1)).squeeze(-1)
         r = r + cfg.mi_weight * logq
         stats["reward/log_posterior"] = logq.mean().item()
@@ -309,7 +327,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     start = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else 0
     write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
     expert = demos.padded(device)
+    expert = replace(expert, actions=env.executed_actions(expert.actions))  # same form as the policy's, see collect
     expert_prev = shift_actions(expert.actions)
+    if start == 0 and cfg.bc_init_iterations > 0:
+        bc_warm_start(m.policy, expert, expert_prev, num_codes, cfg, gen)
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
                        key_stats=("eval/nmi", "eval/mean_purity", "posterior/accuracy", "critic/wasserstein"))
 
@@ -330,7 +351,8 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         stats: dict[str, float] = {}
         # 1. rollout
         t0 = time.perf_counter()
-        roll, next_values, code_idx = collect(env, m, num_codes, gen, device)
+        roll, next_values, code_idx, env_return = collect(env, m, num_codes, gen, device)
+        stats["env/true_return"] = env_return.mean().item()
         steps_done += roll.num_steps * roll.num_envs
         t1 = time.perf_counter()
         # 2. critic
@@ -340,7 +362,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             opt["critic"].zero_grad(set_to_none=True)
             loss.backward()
             opt["critic"].step()
-            if cfg.weight_clip > 0:
+            if cfg.weight_clip > 0 and objective == "wasserstein":
                 with torch.no_grad():
                     for p in m.critic.parameters():
                         p.clamp_(-cfg.weight_clip, cfg.weight_clip)
@@ -363,10 +385,16 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
         roll = roll.with_(rewards=r, advantages=adv, returns=ret)
         # 5. PPO
+        # Windows start from a zero state, unlike the rollout: their "old" log-probs
+        # and values are recomputed under the same conditioning by a frozen copy
+        # of the networks, so that the PPO ratio starts at exactly 1.
+        frozen = (copy.deepcopy(m.policy), copy.deepcopy(m.value)) if cfg.update_mode == "window" else None
         for _ in range(cfg.ppo_epochs):
             batches = (roll.window_batches(cfg.minibatches, cfg.window_length, gen) if cfg.update_mode == "window"
                        else roll.sequence_batches(cfg.minibatches, gen))
             for b in batches:
+                if frozen is not None:
+                    b = _window_behaviour(b, *frozen)
                 dist, _ = m.policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts, codes=b.codes)
                 new_v, _ = m.value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
                 loss, s = ppo_loss(
@@ -399,6 +427,34 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     checkpoint(cfg.iterations)
     logger.close()
     return ckpt_path
+
+
+@torch.no_grad()
+def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> Rollout:
+    dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts, codes=b.codes)
+    v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
+    return b.with_(log_probs=dist.log_prob(b.actions).sum(-1), values=v)
+
+
+def bc_warm_start(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
+                  cfg: AdversarialConfig, gen: torch.Generator) -> dict[str, float]:
+    """Behaviour cloning of the whole (unlabelled) demonstration set, as InfoGAIL
+    initialises its policy.  Each episode gets a random code: the demonstrations
+    carry no code, so the policy starts out ignoring it and the mutual-information
+    reward later makes the codes choose between modes."""
+    opt = torch.optim.Adam(policy.parameters(), lr=cfg.bc_init_lr)
+    n_ep = expert.mask.shape[1]
+    stats: dict[str, float] = {}
+    for _ in range(cfg.bc_init_iterations):
+        idx = torch.randint(n_ep, (min(cfg.num_envs, n_ep),), generator=gen).to(expert.mask.device)
+        codes = (F.one_hot(torch.randint(num_codes, (len(idx),), generator=gen), num_codes).float().to(idx.device)
+                 if num_codes else None)
+        batch = expert.select(idx)
+        loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask, expert_prev[:, idx], codes)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    return stats
 
 
 def _posterior_batches(roll: Rollout, code_steps: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):

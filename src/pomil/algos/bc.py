@@ -18,6 +18,7 @@ import torch
 
 from pomil.config import RunConfig, check_positive, option, to_dict
 from pomil.data import Demonstrations, check_demos_env
+from pomil.envs import executed_actions_fn
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import (
@@ -43,12 +44,16 @@ class BCConfig(RunConfig):
             raise ValueError(f"lr must be > 0, got {self.lr}")
 
 
-def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
-    """Masked mean negative log-likelihood over a (T, B) block of whole episodes."""
+def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor,
+            prev_actions: torch.Tensor | None = None, codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked mean negative log-likelihood over a (T, B) block of whole episodes.
+
+    ``prev_actions`` (a_{t-1} as the environment carried it out) defaults to
+    the shifted ``actions``; ``codes`` (B, K) one-hot, for a policy with codes."""
     starts = torch.zeros_like(mask)
     starts[0] = True
     h0 = policy.initial_state(obs.shape[1], obs.device)
-    dist, _ = policy.unroll(obs, shift_actions(actions), h0, starts)
+    dist, _ = policy.unroll(obs, shift_actions(actions) if prev_actions is None else prev_actions, h0, starts, codes=codes)
     m = mask.to(obs.dtype)
     nll = -(dist.log_prob(actions).sum(-1) * m).sum() / m.sum()
     mse = (((dist.mean - actions) ** 2).sum(-1) * m).sum() / m.sum()
@@ -72,6 +77,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     write_json(run_dir / "config.json", {"algo": "bc", **to_dict(config)})
 
     data = demos.padded(device)
+    prev_all = shift_actions(executed_actions_fn(env_id, env_kwargs)(data.actions))
     n_ep = demos.num_episodes
     logger = RunLogger(run_dir, config.iterations, start, config.progress, desc="bc", key_stats=("bc/nll", "bc/action_mse"))
 
@@ -88,7 +94,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     for iteration in range(start + 1, config.iterations + 1):
         idx = torch.randint(n_ep, (min(config.batch_episodes, n_ep),), generator=generator).to(device)
         batch = data.select(idx)
-        loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask)
+        loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask, prev_all[:, idx])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import gymnasium as gym
+import torch
 
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 
@@ -37,3 +38,18 @@ def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device:
 
         return CirclesVecEnv(CirclesSpec.from_dict(env_kwargs), num_envs, device)
     raise ValueError(f"no batched environment for {env_id!r} yet (supported: {CIRCLES_ID})")
+
+
+def executed_actions_fn(env_id: str, env_kwargs: dict[str, Any]) -> Callable[[torch.Tensor], torch.Tensor]:
+    """Maps raw policy actions to the actions the environment carries out.
+
+    Learners feed these to critics and posteriors and as the previous action,
+    so that expert and policy actions are compared in the same form.  The
+    identity where an environment uses its actions as given.
+    """
+    if env_id == CIRCLES_ID:
+        from pomil.envs.circles import CirclesSpec, executed_actions
+
+        action_type = CirclesSpec.from_dict(env_kwargs).action_type
+        return lambda actions: executed_actions(actions, action_type)
+    return lambda actions: actions

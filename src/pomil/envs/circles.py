@@ -143,6 +143,21 @@ def action_to_direction(actions: torch.Tensor, action_type: str) -> torch.Tensor
     return torch.where(norm > ZERO_ACTION_EPS, actions / safe, torch.zeros_like(actions))
 
 
+def executed_actions(actions: torch.Tensor, action_type: str) -> torch.Tensor:
+    """The actions as the environment carries them out, in the action's own shape.
+
+    Vector actions: the unit direction (zero below ``ZERO_ACTION_EPS``), since
+    the length of the vector is ignored.  Angle actions: the heading wrapped to
+    (-pi, pi].  Learners feed these, not the raw samples, to the critic and
+    posterior and as the previous action a_{t-1}: expert demonstrations hold
+    unit vectors, so a raw Gaussian sample's length would otherwise tell the
+    critic "policy" without saying anything about where the agent went.
+    """
+    if action_type == "angle":
+        return torch.atan2(torch.sin(actions), torch.cos(actions))
+    return action_to_direction(actions, action_type)
+
+
 def distance_to_circles(positions: torch.Tensor, centres: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
     """| |p - c_k| - r_k | for every position and circle: (..., K)."""
     return ((positions.unsqueeze(-2) - centres).norm(dim=-1) - radii).abs()
@@ -177,6 +192,10 @@ class CirclesVecEnv:
         self.positions = torch.zeros(self.num_envs, 2, device=self.device)
         self._history = torch.zeros(self.num_envs, self.spec.history, 2, device=self.device)
         return self._obs()
+
+    def executed_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """See :func:`executed_actions`."""
+        return executed_actions(actions, self.spec.action_type)
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         if self._needs_reset:

@@ -34,7 +34,10 @@ class Rollout:
     True where an episode begins; codes (T, N, K) one-hot (K may be 0);
     log_probs, values, rewards, advantages, returns (T, N) float;
     terminated, truncated (T, N) bool; mask (T, N) bool, valid steps;
-    h0_policy (N, H), h0_value (N, H): hidden states before step 0.
+    h0_policy (N, H), h0_value (N, H): hidden states before step 0;
+    env_actions (T, N, act_dim): the actions as the environment carried them
+    out (see ``pomil.envs.executed_actions_fn``), what critics and posteriors
+    see; ``None`` means the same as ``actions``.
     """
 
     observations: torch.Tensor
@@ -49,6 +52,7 @@ class Rollout:
     mask: torch.Tensor
     h0_policy: torch.Tensor
     h0_value: torch.Tensor
+    env_actions: torch.Tensor | None = None
     rewards: torch.Tensor | None = None
     advantages: torch.Tensor | None = None
     returns: torch.Tensor | None = None
@@ -64,6 +68,10 @@ class Rollout:
         for name in ("h0_policy", "h0_value"):
             if getattr(self, name).shape[0] != n:
                 raise ValueError(f"Rollout.{name}: expected {n} rows, got {tuple(getattr(self, name).shape)}")
+
+    @property
+    def executed_actions(self) -> torch.Tensor:
+        return self.actions if self.env_actions is None else self.env_actions
 
     @property
     def num_steps(self) -> int:
