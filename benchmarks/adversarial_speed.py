@@ -1,6 +1,7 @@
 """Training throughput of each adversarial learner on circles, measured in one run.
 
-Runs every learner for a few iterations with its default config and prints
+Runs every learner for a few iterations with the circles recipe of
+``pomil reproduce circles`` (BC warm start off: only the loop is timed) and prints
 env-steps/s (everything included: rollout, critic, posterior, PPO) and the
 share of time spent in each phase, read from the run's own timers.
 
@@ -12,11 +13,13 @@ from __future__ import annotations
 import argparse
 import csv
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
-from pomil.algos.adversarial import LEARNERS, AdversarialConfig, train_adversarial
+from pomil.algos.adversarial import LEARNERS, train_adversarial
 from pomil.envs.circles import make_spec
 from pomil.experts import record_circles_demos
+from pomil.reproduce import CirclesReproConfig, adversarial_config
 
 
 def main() -> None:
@@ -33,8 +36,9 @@ def main() -> None:
         print(f"{'learner':16s} {'env-steps/s':>12s} {'rollout':>8s} {'critic':>8s} {'posterior':>9s} {'ppo':>6s}")
         for learner in LEARNERS:
             out = Path(tmp) / learner
-            train_adversarial(AdversarialConfig(learner=learner, demos=demos, out=str(out), iterations=args.iterations,
-                                                eval_every=0, progress=False, update_mode=args.update_mode))
+            cfg = adversarial_config(CirclesReproConfig(demos=demos, adversarial_iterations=args.iterations, progress=False),
+                                     learner, 0, out)
+            train_adversarial(replace(cfg, eval_every=0, bc_init_iterations=0, update_mode=args.update_mode))
             last = list(csv.DictReader(open(out / "metrics.csv")))[-1]
             share = lambda k: float(last[f"time/share_{k}"])  # noqa: E731
             print(f"{learner:16s} {float(last['time/env_steps_per_s']):12,.0f} {share('rollout'):8.0%} {share('critic'):8.0%} "

@@ -84,3 +84,15 @@ def test_previous_action_is_fed_back_as_the_environment_executed_it():
         raw, _ = p.policy.unroll(torch.as_tensor(obs), shift_actions(acts), p.policy.initial_state(2), starts)
     torch.testing.assert_close(dist.mean, acts)
     assert not torch.allclose(raw.mean, acts)
+
+
+def test_saved_policy_loads_and_acts_the_same(tmp_path):
+    p = _policy(num_codes=2)
+    p.save(tmp_path / "p.pt")
+    q = TrainedPolicy.load(tmp_path / "p.pt")
+    assert q.algo == "test" and q.num_codes == 2 and q.env == p.env
+    obs = np.random.default_rng(0).normal(size=(3, 4, 2)).astype(np.float32)
+    for pol in (p, q):
+        pol.reset(4, codes=[0, 1, 1, 0], seed=3)
+    for o in obs:
+        np.testing.assert_array_equal(p.act(o), q.act(o))

@@ -21,7 +21,7 @@ import torch
 from pomil.envs import executed_actions_fn
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch
-from pomil.training import load_checkpoint
+from pomil.training import load_checkpoint, save_checkpoint
 
 
 class TrainedPolicy:
@@ -42,6 +42,12 @@ class TrainedPolicy:
         except (KeyError, TypeError, RuntimeError) as err:
             raise PomilError(f"{path}: checkpoint has no usable policy ({str(err).splitlines()[0][:160]})") from None
         return cls(policy, str(ckpt.get("algo", "?")), dict(ckpt.get("env", {})), device)
+
+    def save(self, path: str | Path) -> None:
+        """Write the policy alone (no critic, optimiser or RNG state): a small
+        checkpoint that :meth:`load` and ``pomil evaluate`` read."""
+        save_checkpoint(path, {"algo": self.algo, "env": self.env, "policy_arch": self.policy.arch.to_dict(),
+                               "policy": {k: v.detach().cpu() for k, v in self.policy.state_dict().items()}})
 
     @property
     def num_codes(self) -> int:

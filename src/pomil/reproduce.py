@@ -8,6 +8,7 @@ purity, modes covered, NMI), and writes into ``--out``::
     table.md       the summary table (mean +- std over seeds)
     figure.png     Figure-1-style trajectories: experts, then one panel per learner
     rollouts.npz   the trajectories the figure is drawn from
+    infogail-pomdp.pt   the InfoGAIL-POMDP policy of seed 0 (policy only)
 """
 
 from __future__ import annotations
@@ -157,7 +158,10 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
             t0 = time.perf_counter()
             ckpt = LEARNERS[name](cfg, seed, Path(cfg.runs) / name / f"seed{seed}")
             walls.append(time.perf_counter() - t0)
-            metrics, roll = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
+            policy = TrainedPolicy.load(ckpt)
+            metrics, roll = evaluate_circles(policy, cfg.episodes_per_code, seed=1000 + seed)
+            if name == "infogail-pomdp" and seed == 0:  # shipped, so `pomil evaluate` works without training
+                policy.save(Path(cfg.out) / "infogail-pomdp.pt")
             metrics["checkpoint"] = str(ckpt)
             metrics["train_seed"] = seed
             runs.append(metrics)
