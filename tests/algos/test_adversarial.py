@@ -141,3 +141,15 @@ def test_gan_critic_is_never_weight_clipped(demos_path, tmp_path):
     assert max(p.abs().max().item() for p in load_checkpoint(ckpt)["nets"]["critic"].values()) > 0.01
     ckpt = train_adversarial(_cfg(demos_path, tmp_path / "wgan", learner="infogail", weight_clip=0.01, critic_steps=2))
     assert max(p.abs().max().item() for p in load_checkpoint(ckpt)["nets"]["critic"].values()) <= 0.01
+
+
+def test_shared_value_encoder_is_one_module_trained_once(demos_path, tmp_path):
+    cfg = _cfg(demos_path, tmp_path / "s", learner="infogail-pomdp", shared_value_encoder=True)
+    m, _ = build_modules(cfg, 2, 2, 2, "cpu")
+    assert m.value.encoder is m.policy.encoder
+    ckpt = load_checkpoint(train_adversarial(cfg))
+    policy_enc = {k: v for k, v in ckpt["nets"]["policy"].items() if k.startswith("encoder.")}
+    for k, v in policy_enc.items():
+        assert torch.equal(ckpt["nets"]["value"][k], v)
+    # the value optimiser holds only the value head's parameters
+    assert len(ckpt["optimizers"]["value"]["param_groups"][0]["params"]) == len(list(m.value.mlp.parameters()))

@@ -75,6 +75,7 @@ class AdversarialConfig(RunConfig):
     hidden_size: int = option(128, "dense width and GRU cells of every network")
     lr: float = option(2e-4, "policy learning rate (Adam)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)")
+    shared_value_encoder: bool = option(False, "value head on the policy's encoder instead of its own (measured: see README)")
     lr_critic: float = option(2e-4, "critic learning rate")
     lr_posterior: float = option(2e-4, "posterior learning rate (Adam)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("rmsprop", "rmsprop (paper text) or adam (paper code)")
@@ -277,9 +278,13 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes:
     preset = PRESETS[cfg.learner]
     enc = preset["encoder"]
     arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean)
+    policy = GaussianPolicy(arch).to(device)
+    value = heads.value(obs_dim, act_dim, num_codes, enc, cfg.hidden_size).to(device)
+    if cfg.shared_value_encoder:
+        value.encoder = policy.encoder  # one module: the value loss also trains the policy's encoder
     m = Modules(
-        policy=GaussianPolicy(arch).to(device),
-        value=heads.value(obs_dim, act_dim, num_codes, enc, cfg.hidden_size).to(device),
+        policy=policy,
+        value=value,
         critic=heads.critic(obs_dim, act_dim, enc, cfg.hidden_size).to(device),
         posterior=heads.posterior(obs_dim, act_dim, num_codes, enc, cfg.hidden_size).to(device) if num_codes else None,
     )
@@ -317,7 +322,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     m, arch = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, device)
     opt = {
         "policy": torch.optim.Adam(m.policy.parameters(), lr=cfg.lr),
-        "value": torch.optim.Adam(m.value.parameters(), lr=cfg.lr_value),
+        "value": torch.optim.Adam(m.value.mlp.parameters() if cfg.shared_value_encoder else m.value.parameters(), lr=cfg.lr_value),
         "critic": (torch.optim.RMSprop(m.critic.parameters(), lr=cfg.lr_critic) if cfg.critic_optimizer == "rmsprop"
                    else torch.optim.Adam(m.critic.parameters(), lr=cfg.lr_critic, betas=(0.5, 0.9))),
     }
@@ -405,7 +410,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                 opt["value"].zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5)
-                torch.nn.utils.clip_grad_norm_(m.value.parameters(), 0.5)
+                torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5)  # without a shared encoder
                 opt["policy"].step()
                 opt["value"].step()
         stats.update(s)
