@@ -79,7 +79,7 @@ def _bc(policy: str) -> Callable[[CirclesReproConfig, int, Path], Path]:
 
 def _adversarial(learner: str) -> Callable[[CirclesReproConfig, int, Path], Path]:
     def run(cfg: CirclesReproConfig, seed: int, run_dir: Path) -> Path:
-        from pomil.algos.adversarial import AdversarialConfig, train_adversarial
+        from pomil.algos.adversarial import train_adversarial
 
         return train_adversarial(adversarial_config(cfg, learner, seed, run_dir))
     return run

@@ -40,7 +40,7 @@ from typing import Any, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import bc_loss
+from pomil.algos.bc import bc_step
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, check_positive, option, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
@@ -448,17 +448,9 @@ def bc_warm_start(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: t
     carry no code, so the policy starts out ignoring it and the mutual-information
     reward later makes the codes choose between modes."""
     opt = torch.optim.Adam(policy.parameters(), lr=cfg.bc_init_lr)
-    n_ep = expert.mask.shape[1]
     stats: dict[str, float] = {}
     for _ in range(cfg.bc_init_iterations):
-        idx = torch.randint(n_ep, (min(cfg.num_envs, n_ep),), generator=gen).to(expert.mask.device)
-        codes = (F.one_hot(torch.randint(num_codes, (len(idx),), generator=gen), num_codes).float().to(idx.device)
-                 if num_codes else None)
-        batch = expert.select(idx)
-        loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask, expert_prev[:, idx], codes)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        stats = bc_step(policy, opt, expert, expert_prev, cfg.num_envs, gen, num_codes)
     return stats
 
 

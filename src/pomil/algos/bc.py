@@ -15,9 +15,10 @@ from pathlib import Path
 from typing import Literal
 
 import torch
+import torch.nn.functional as F
 
 from pomil.config import RunConfig, check_positive, option, to_dict
-from pomil.data import Demonstrations, check_demos_env
+from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
 from pomil.envs import executed_actions_fn
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
@@ -60,6 +61,22 @@ def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, ma
     return nll, {"bc/nll": nll.item(), "bc/action_mse": mse.item(), "bc/log_std": policy.log_std.mean().item()}
 
 
+def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
+            batch_episodes: int, generator: torch.Generator, num_codes: int = 0) -> dict[str, float]:
+    """One update on a random batch of whole episodes.  A policy with latent codes
+    gets a random code per episode (demonstrations carry none)."""
+    n_ep = data.mask.shape[1]
+    idx = torch.randint(n_ep, (min(batch_episodes, n_ep),), generator=generator).to(data.mask.device)
+    codes = (F.one_hot(torch.randint(num_codes, (len(idx),), generator=generator), num_codes).float().to(idx.device)
+             if num_codes else None)
+    batch = data.select(idx)
+    loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask, prev_actions[:, idx], codes)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return stats
+
+
 def train_bc(config: BCConfig, resume: bool = False) -> Path:
     """Train (or continue) a BC run; returns the checkpoint path."""
     if not config.demos:
@@ -78,7 +95,6 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
 
     data = demos.padded(device)
     prev_all = shift_actions(executed_actions_fn(env_id, env_kwargs)(data.actions))
-    n_ep = demos.num_episodes
     logger = RunLogger(run_dir, config.iterations, start, config.progress, desc="bc", key_stats=("bc/nll", "bc/action_mse"))
 
     def checkpoint(iteration: int) -> None:
@@ -92,12 +108,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
 
     t0 = time.perf_counter()
     for iteration in range(start + 1, config.iterations + 1):
-        idx = torch.randint(n_ep, (min(config.batch_episodes, n_ep),), generator=generator).to(device)
-        batch = data.select(idx)
-        loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask, prev_all[:, idx])
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        stats = bc_step(policy, optimizer, data, prev_all, config.batch_episodes, generator)
         if iteration % config.log_every == 0 or iteration in (1, config.iterations):
             stats["time/elapsed_s"] = time.perf_counter() - t0
             logger.log(iteration, stats)
