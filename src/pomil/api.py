@@ -31,7 +31,7 @@ class TrainedPolicy:
         self.env = env
         self.device = torch.device(device)
         self._h: torch.Tensor | None = None
-        self._executed = executed_actions_fn(env["id"], env.get("kwargs") or {}) if env.get("id") else (lambda a: a)
+        self._executed = executed_actions_fn(env.get("id", ""), env.get("kwargs") or {})
 
     @classmethod
     def load(cls, path: str | Path, device: torch.device | str = "cpu") -> "TrainedPolicy":

@@ -3,7 +3,7 @@ import torch
 
 from pomil.algos.adversarial import AdversarialConfig, build_modules, collect, critic_loss, posterior_loss, train_adversarial
 from pomil.cli import main
-from pomil.envs import make_vec_env
+from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.nn import heads
 from pomil.rl.storage import Rollout
 from pomil.training import load_checkpoint
@@ -110,7 +110,8 @@ def test_adversarial_same_seed_same_run_and_resume(demos_path, tmp_path):
 def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_path):
     m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), 2, 2, 2, "cpu")
     env = make_vec_env("pomil/Circles-v0", {}, 8)
-    roll, _, _, env_return = collect(env, m, 2, torch.Generator().manual_seed(0), torch.device("cpu"))
+    roll, _, _, env_return = collect(env, m, 2, executed_actions_fn("pomil/Circles-v0", {}), torch.Generator().manual_seed(0),
+                                     torch.device("cpu"))
     norms = roll.executed_actions.norm(dim=-1)
     torch.testing.assert_close(norms, torch.ones_like(norms))  # expert demonstrations hold unit vectors too
     assert not torch.allclose(roll.actions.norm(dim=-1), norms)  # the raw Gaussian samples do not

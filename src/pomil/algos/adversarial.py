@@ -35,7 +35,7 @@ import copy
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import torch
 import torch.nn.functional as F
@@ -44,7 +44,7 @@ from pomil.algos.bc import bc_step
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, check_positive, option, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
-from pomil.envs import make_vec_env
+from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.errors import PomilError
 from pomil.nn import heads
 from pomil.nn.heads import BeliefHead
@@ -130,9 +130,10 @@ def _first_step_starts(mask: torch.Tensor) -> torch.Tensor:
 
 # ------------------------------------------------------------------ rollout
 @torch.no_grad()
-def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device: torch.device
-            ) -> tuple[Rollout, torch.Tensor, torch.Tensor, torch.Tensor]:
+def collect(env, m: Modules, num_codes: int, execute: Callable[[torch.Tensor], torch.Tensor], generator: torch.Generator,
+            device: torch.device) -> tuple[Rollout, torch.Tensor, torch.Tensor, torch.Tensor]:
     """One episode in each of the env's N copies (circles episodes have one fixed length).
+    ``execute`` maps raw actions to executed ones (``pomil.envs.executed_actions_fn``).
 
     Returns (rollout, next_values (T, N) = V(s_{t+1}) with the final observation's
     value at the last step, code index per env (N,), the environment's own
@@ -151,7 +152,7 @@ def collect(env, m: Modules, num_codes: int, generator: torch.Generator, device:
         dist, h_pi = m.policy.step(obs, prev, h_pi, start, codes)
         action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=generator).to(device)
         v, h_v = m.value.step(obs, prev, h_v, start, codes)
-        executed = env.executed_actions(action)
+        executed = execute(action)
         rec["obs"].append(obs)
         rec["act"].append(action)
         rec["exec"].append(executed)
@@ -208,16 +209,17 @@ def critic_loss(
     critic: BeliefHead, expert: tuple, policy: Rollout, objective: str, gp_weight: float,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     e_obs, e_prev, e_act, e_starts, e_mask = expert
-    p_inputs = (policy.observations, policy.prev_actions, policy.executed_actions, policy.starts)
+
+    def score(obs, prev, act, starts):
+        return critic.unroll(obs, prev, critic.initial_state(obs.shape[1], obs.device), starts, extra=act)[0]
+
+    e_in = (e_obs, e_prev, e_act, e_starts)
+    p_in = (policy.observations, policy.prev_actions, policy.executed_actions, policy.starts)
     if e_obs.shape[0] == policy.num_steps:  # one unroll over expert and policy columns side by side
-        n = e_obs.shape[1]
-        obs, prev, act, starts = (torch.cat([e, p], dim=1) for e, p in zip((e_obs, e_prev, e_act, e_starts), p_inputs))
-        f, _ = critic.unroll(obs, prev, critic.initial_state(obs.shape[1], obs.device), starts, extra=act)
-        f_exp, f_pol = f[:, :n], f[:, n:]
+        f = score(*(torch.cat(pair, dim=1) for pair in zip(e_in, p_in)))
+        f_exp, f_pol = f[:, :e_obs.shape[1]], f[:, e_obs.shape[1]:]
     else:
-        f_exp, _ = critic.unroll(e_obs, e_prev, critic.initial_state(e_obs.shape[1], e_obs.device), e_starts, extra=e_act)
-        f_pol, _ = critic.unroll(p_inputs[0], p_inputs[1], critic.initial_state(policy.num_envs, e_obs.device),
-                                 p_inputs[3], extra=p_inputs[2])
+        f_exp, f_pol = score(*e_in), score(*p_in)
     if objective == "wasserstein":
         w = masked_mean(f_exp, e_mask) - masked_mean(f_pol, policy.mask)
         loss = -w
@@ -233,7 +235,7 @@ def critic_loss(
         alpha = torch.rand(1, b, 1, device=e_obs.device)
         mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
         obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.executed_actions)
-        f_i, _ = critic.unroll(obs_i, prev_i, critic.initial_state(b, e_obs.device), e_starts[:t, :b], extra=act_i)
+        f_i = score(obs_i, prev_i, act_i, e_starts[:t, :b])
         inputs = (obs_i, prev_i, act_i)
         grads = torch.autograd.grad(f_i.sum(), inputs, create_graph=True, allow_unused=True)  # MLPs ignore prev
         norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)], dim=-1).norm(dim=-1)
@@ -316,6 +318,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: {err}") from None
+    execute = executed_actions_fn(env_id, env_kwargs)
     num_codes = resolve_num_codes(cfg, demos)
     objective = PRESETS[cfg.learner]["critic_objective"]
     gen = seed_everything(cfg.seed)
@@ -332,7 +335,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     start = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else 0
     write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
     expert = demos.padded(device)
-    expert = replace(expert, actions=env.executed_actions(expert.actions))  # same form as the policy's, see collect
+    expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
     expert_prev = shift_actions(expert.actions)
     if start == 0 and cfg.bc_init_iterations > 0:
         bc_warm_start(m.policy, expert, expert_prev, num_codes, cfg, gen)
@@ -356,7 +359,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         stats: dict[str, float] = {}
         # 1. rollout
         t0 = time.perf_counter()
-        roll, next_values, code_idx, env_return = collect(env, m, num_codes, gen, device)
+        roll, next_values, code_idx, env_return = collect(env, m, num_codes, execute, gen, device)
         stats["env/true_return"] = env_return.mean().item()
         steps_done += roll.num_steps * roll.num_envs
         t1 = time.perf_counter()

@@ -193,10 +193,6 @@ class CirclesVecEnv:
         self._history = torch.zeros(self.num_envs, self.spec.history, 2, device=self.device)
         return self._obs()
 
-    def executed_actions(self, actions: torch.Tensor) -> torch.Tensor:
-        """See :func:`executed_actions`."""
-        return executed_actions(actions, self.spec.action_type)
-
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         if self._needs_reset:
             raise RuntimeError("call reset() before step() (the episode is over or never began)")
