@@ -20,13 +20,19 @@ import torch
 
 from pomil.envs import executed_actions_fn
 from pomil.errors import PomilError
+from pomil.nn.normalize import RunningNorm
 from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.training import load_checkpoint, save_checkpoint
 
 
 class TrainedPolicy:
-    def __init__(self, policy: GaussianPolicy, algo: str, env: dict[str, Any], device: torch.device | str = "cpu") -> None:
+    """A policy with what it needs to act: its environment (``env``: id, kwargs,
+    observation_mask) and, for PPO experts, its observation normaliser."""
+
+    def __init__(self, policy: GaussianPolicy, algo: str, env: dict[str, Any], device: torch.device | str = "cpu",
+                 obs_norm: RunningNorm | None = None) -> None:
         self.policy = policy.to(device).eval()
+        self.obs_norm = obs_norm.to(device) if obs_norm is not None else None
         self.algo = algo
         self.env = env
         self.device = torch.device(device)
@@ -39,15 +45,20 @@ class TrainedPolicy:
         try:
             policy = GaussianPolicy(PolicyArch(**ckpt["policy_arch"]))
             policy.load_state_dict(ckpt["policy"])
+            obs_norm = None
+            if ckpt.get("obs_norm") is not None:
+                obs_norm = RunningNorm(policy.arch.obs_dim)
+                obs_norm.load_state_dict(ckpt["obs_norm"])
         except (KeyError, TypeError, RuntimeError) as err:
             raise PomilError(f"{path}: checkpoint has no usable policy ({str(err).splitlines()[0][:160]})") from None
-        return cls(policy, str(ckpt.get("algo", "?")), dict(ckpt.get("env", {})), device)
+        return cls(policy, str(ckpt.get("algo", "?")), dict(ckpt.get("env", {})), device, obs_norm)
 
     def save(self, path: str | Path) -> None:
         """Write the policy alone (no critic, optimiser or RNG state): a small
         checkpoint that :meth:`load` and ``pomil evaluate`` read."""
         save_checkpoint(path, {"algo": self.algo, "env": self.env, "policy_arch": self.policy.arch.to_dict(),
-                               "policy": {k: v.detach().cpu() for k, v in self.policy.state_dict().items()}})
+                               "policy": {k: v.detach().cpu() for k, v in self.policy.state_dict().items()},
+                               "obs_norm": None if self.obs_norm is None else {k: v.cpu() for k, v in self.obs_norm.state_dict().items()}})
 
     @property
     def num_codes(self) -> int:
@@ -90,6 +101,8 @@ class TrainedPolicy:
         obs = torch.as_tensor(np.asarray(observations) if as_numpy else observations, dtype=torch.float32, device=self.device)
         if obs.shape != (self._n, self.obs_dim):
             raise ValueError(f"observations must have shape ({self._n}, {self.obs_dim}), got {tuple(obs.shape)}")
+        if self.obs_norm is not None:
+            obs = self.obs_norm(obs)
         dist, self._h = self.policy.step(obs, self._prev, self._h, self._start, self._codes)
         if deterministic:
             action = dist.mean

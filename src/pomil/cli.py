@@ -86,6 +86,69 @@ def cmd_demos(args: argparse.Namespace) -> int:
     return 0
 
 
+@dataclass(frozen=True)
+class HopperDemosConfig:
+    out: str = option("data/hopper-paper.npz", "output .npz file (written atomically)")
+    episodes: int = option(200, "episodes per task")
+    setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    forward_expert: str = option("data/experts/hopper-forward.pt", "forward expert checkpoint (pomil experts hopper)")
+    backward_expert: str = option("data/experts/hopper-backward.pt", "backward expert checkpoint")
+    observation_mask: str = option("positions-only", "what the learner observes: positions-only, or comma-separated indices")
+    seed: int = option(0, "random seed (reset noise, episode order)")
+
+
+def _mask_arg(text: str) -> str | list[int]:
+    if text == "positions-only":
+        return text
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise PomilError(f"--observation-mask: expected 'positions-only' or comma-separated integers, got {text!r}") from None
+
+
+def cmd_demos_hopper(args: argparse.Namespace) -> int:
+    from pomil.experts import record_hopper_demos
+
+    cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
+    experts = {"forward": cfg.forward_expert, "backward": cfg.backward_expert}
+    for task, path in experts.items():
+        if not Path(path).is_file():
+            raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task {task})")
+    try:
+        demos = record_hopper_demos(experts, cfg.episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask))
+    except ValueError as err:
+        raise PomilError(f"demos hopper: {err}") from None
+    demos.save(cfg.out)
+    md = demos.metadata
+    print(f"wrote {cfg.out}: {demos.num_episodes} episodes ({cfg.episodes} per task, {cfg.setting} setting), "
+          f"observation {md['observation_mask']}; expert returns "
+          + ", ".join(f"{t} {md['expert_returns'][t]:.1f} (zero actions {md['still_returns'][t]:.1f})" for t in experts))
+    return 0
+
+
+def cmd_experts(args: argparse.Namespace) -> int:
+    from pomil.algos.expert import ExpertConfig, train_expert
+    from pomil.api import TrainedPolicy
+    from pomil.envs.locomotion import hopper_kwargs
+    from pomil.eval.locomotion import rollout_locomotion
+
+    cfg: ExpertConfig = config_from_args(ExpertConfig, args)
+    ckpt = train_expert(cfg, resume=args.resume)
+    policy = TrainedPolicy.load(ckpt)
+    report = {}
+    for setting in ("paper", "standard"):
+        roll = rollout_locomotion(policy, hopper_kwargs(cfg.task, setting), 20, seed=10_000)
+        report[setting] = {"return": float(roll["returns"].mean()), "return_std": float(roll["returns"].std()),
+                           "length": float(roll["length"].mean()), "displacement": float(roll["displacement"].mean())}
+    from pomil.training import write_json
+
+    write_json(Path(cfg.out) / "evaluation.json", {"task": cfg.task, "deterministic": True, "episodes": 20, **report})
+    print(f"wrote {ckpt}; deterministic return over 20 episodes: "
+          + "; ".join(f"{s} setting {r['return']:.1f} ± {r['return_std']:.1f} ({r['length']:.0f} steps, "
+                      f"moved {r['displacement']:+.2f} m)" for s, r in report.items()))
+    return 0
+
+
 def _learners() -> dict[str, tuple[type, Callable[..., Path]]]:
     from pomil.algos.adversarial import LEARNERS, AdversarialConfig, train_adversarial
     from pomil.algos.bc import BCConfig, train_bc
@@ -123,8 +186,29 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
     policy = TrainedPolicy.load(args.checkpoint)
+    if policy.env.get("id") == "Hopper-v5":
+        return _evaluate_hopper(policy, args)
     metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, args.deterministic, args.none_threshold)
     print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
+    return 0
+
+
+def _evaluate_hopper(policy, args: argparse.Namespace) -> int:
+    from pomil.data import Demonstrations
+    from pomil.eval.locomotion import evaluate_tasks, reference_of
+
+    if not args.demos:
+        raise PomilError("evaluate: a Hopper policy needs --demos (the demonstrations whose expert returns normalise the scores)")
+    reference = reference_of(Demonstrations.load(args.demos).metadata, args.demos)
+    m = evaluate_tasks(policy, reference, args.episodes_per_code, args.seed, deterministic=not args.stochastic)
+    if args.json:
+        print(json.dumps(m, indent=2))
+        return 0
+    print(f"algo {policy.algo}  codes {policy.num_codes}  episodes/code {args.episodes_per_code}  "
+          f"{'deterministic' if m['deterministic'] else 'stochastic'}")
+    for task, r in m["tasks"].items():
+        print(f"{task:<9s} code {r['code']}  return {r['return']:7.1f}  normalised {r['normalised_return']:.2f}  "
+              f"progress {r['progress']:.2f}  displacement ratio {r['displacement_ratio']:.2f}")
     return 0
 
 
@@ -156,10 +240,12 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from pomil.reproduce import CirclesReproConfig, reproduce_circles
+    from pomil.reproduce import CirclesReproConfig, HopperReproConfig, reproduce_circles, reproduce_hopper
 
-    cfg = config_from_args(CirclesReproConfig, args)
-    reproduce_circles(cfg)
+    if args.experiment == "hopper":
+        reproduce_hopper(config_from_args(HopperReproConfig, args))
+    else:
+        reproduce_circles(config_from_args(CirclesReproConfig, args))
     return 0
 
 
@@ -173,6 +259,18 @@ def build_parser() -> argparse.ArgumentParser:
     dc = demos_sub.add_parser("circles", help="scripted circle experts, equal numbers per mode")
     add_config_flags(dc, CirclesDemosConfig)
     dc.set_defaults(func=cmd_demos)
+    dh = demos_sub.add_parser("hopper", help="Hopper forward + backward experts, equal numbers per task, positions-only view")
+    add_config_flags(dh, HopperDemosConfig)
+    dh.set_defaults(func=cmd_demos_hopper)
+
+    from pomil.algos.expert import ExpertConfig
+
+    ex = sub.add_parser("experts", help="train a PPO expert on the full observation")
+    ex_sub = ex.add_subparsers(dest="env", required=True, metavar="ENV")
+    eh = ex_sub.add_parser("hopper", help="Hopper-v5 forward or backward (MLP policy, pomil's PPO)")
+    add_config_flags(eh, ExpertConfig, fixed={"demos": ""})
+    eh.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    eh.set_defaults(func=cmd_experts)
 
     train = sub.add_parser("train", help="train a learner on demonstrations")
     train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
@@ -185,13 +283,15 @@ def build_parser() -> argparse.ArgumentParser:
         tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         tp.set_defaults(func=cmd_train)
 
-    ev = sub.add_parser("evaluate", help="roll a checkpoint out and report mode metrics (circles)")
+    ev = sub.add_parser("evaluate", help="roll a checkpoint out: mode metrics (circles) or per-task scores (Hopper)")
     ev.add_argument("checkpoint", help="checkpoint.pt (or its run directory)")
     ev.add_argument("--episodes-per-code", type=int, default=100, help="rollouts per latent code (default: 100)")
     ev.add_argument("--seed", type=int, default=0, help="rollout seed (default: 0)")
     ev.add_argument("--deterministic", action="store_true", help="act with the policy mean instead of sampling")
     ev.add_argument("--none-threshold", type=float, default=1.0,
                     help="mean distance to every circle above which a trajectory is in no mode (default: 1.0)")
+    ev.add_argument("--demos", help="Hopper: demonstrations .npz whose metadata hold the expert and zero-action returns")
+    ev.add_argument("--stochastic", action="store_true", help="Hopper: sample actions (default there: the policy mean)")
     ev.add_argument("--json", action="store_true", help="print machine-readable JSON")
     ev.set_defaults(func=cmd_evaluate)
 
@@ -204,13 +304,16 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--deterministic", action="store_true", help="act with the policy mean")
     pl.set_defaults(func=cmd_plot)
 
-    from pomil.reproduce import CirclesReproConfig
+    from pomil.reproduce import CirclesReproConfig, HopperReproConfig
 
     rp = sub.add_parser("reproduce", help="run a paper experiment end to end")
     rp_sub = rp.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
     rc = rp_sub.add_parser("circles", help="demos, train every learner over seeds, evaluate, table and figure")
     add_config_flags(rc, CirclesReproConfig)
     rc.set_defaults(func=cmd_reproduce)
+    rh = rp_sub.add_parser("hopper", help="Figure 2c: every learner over seeds on the shipped Hopper demos, table and curves")
+    add_config_flags(rh, HopperReproConfig)
+    rh.set_defaults(func=cmd_reproduce)
     return p
 
 

@@ -256,7 +256,8 @@ def atomic_write(path: Path, write) -> None:
 def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, Any]]:
     """Check that the demos name their environment and fit its spaces.
 
-    Returns (env_id, env_kwargs) from the metadata.
+    Returns (env_id, env_kwargs) from the metadata; ``metadata.observation_mask``
+    (indices of the observed entries, or null) is checked against the env.
     """
     from pomil.envs import env_dims
 
@@ -266,9 +267,17 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
         raise DataError("metadata.env_id", "expected the id of the environment the demonstrations come from", source)
     if not isinstance(kwargs, dict):
         raise DataError("metadata.env_kwargs", f"expected a JSON object, got {type(kwargs).__name__}", source)
+    mask = demos.metadata.get("observation_mask")
+    if mask is not None and (not isinstance(mask, list) or not all(isinstance(i, int) for i in mask)):
+        raise DataError("metadata.observation_mask", f"expected null or a list of observation indices, got {mask!r}", source)
     try:
         obs_dim, act_dim = env_dims(env_id, kwargs)
     except Exception as err:  # unknown id, bad kwargs: gymnasium raises several types
         raise DataError("metadata.env_id", f"cannot build {env_id!r} with {kwargs} ({str(err).splitlines()[0][:160]})", source) from None
+    if mask is not None:
+        try:
+            obs_dim, act_dim = env_dims(env_id, kwargs, mask)
+        except ValueError as err:
+            raise DataError("metadata.observation_mask", str(err), source) from None
     demos.check_compatible(obs_dim, act_dim, source)
     return env_id, kwargs

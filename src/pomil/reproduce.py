@@ -190,3 +190,158 @@ def plot_from_rollouts(rollouts_path: Path, figure_path: Path) -> None:
         names = list(dict.fromkeys(k.split("/")[0] for k in r.files))
         panels = [(n, r[f"{n}/positions"], r[f"{n}/groups"], "mode" if n == "experts" else "code") for n in names]
     figure1(panels, figure_path)
+
+
+# ====================================================================== Hopper
+# The adversarial learners' settings for Hopper, where they differ from
+# AdversarialConfig's defaults: the circles recipe (gradient-penalty critic),
+# 64 episodes of 128 steps per iteration, and evaluation every 10 iterations
+# for the learning curves.
+HOPPER_ADVERSARIAL: dict[str, Any] = {
+    **CIRCLES_ADVERSARIAL,
+    "num_envs": 64,
+    "eval_every": 10,
+    "eval_episodes": 10,
+    "log_every": 5,
+}
+HOPPER_EXPERTS = {task: f"data/experts/hopper-{task}.pt" for task in ("forward", "backward")}
+METRICS = ("normalised_return", "progress", "displacement_ratio")
+
+
+@dataclass(frozen=True)
+class HopperReproConfig:
+    setting: str = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    out: str = option("", "results directory (default: results/hopper, results/hopper-standard for the standard setting)")
+    runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
+    demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
+    demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded")
+    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)")
+    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"), "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
+    bc_iterations: int = option(1500, "gradient steps for behaviour cloning")
+    adversarial_iterations: int = option(100, "iterations for gail, infogail and infogail-pomdp (x 64 x 128 env steps)")
+    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the Hopper recipe "
+                                         "(pomil.reproduce.HOPPER_ADVERSARIAL) and the defaults")
+    episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)")
+    progress: bool = option(True, "show progress bars")
+
+    def __post_init__(self) -> None:
+        if self.setting not in ("paper", "standard"):
+            raise ValueError(f"setting must be 'paper' or 'standard', got {self.setting!r}")
+        if self.seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
+        unknown = sorted(set(self.learners) - set(LEARNERS))
+        if unknown or not self.learners:
+            raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
+
+    def path(self, name: str) -> Path:
+        suffix = "" if self.setting == "paper" else f"-{self.setting}"
+        defaults = {"out": f"results/hopper{suffix}", "runs": f"runs/hopper{suffix}", "demos": f"data/hopper-{self.setting}.npz"}
+        return Path(getattr(self, name) or defaults[name])
+
+
+def hopper_demos(cfg: HopperReproConfig) -> Path:
+    """The demonstrations file, recorded from the shipped experts if missing."""
+    from pomil.experts import record_hopper_demos
+
+    path = cfg.path("demos")
+    if path.exists():
+        return path
+    missing = [p for p in HOPPER_EXPERTS.values() if not Path(p).exists()]
+    if missing:
+        raise PomilError(f"{path} is missing and so are the experts to record it from ({', '.join(missing)}); "
+                         f"train them with `pomil experts hopper --task forward|backward`")
+    demos = record_hopper_demos(HOPPER_EXPERTS, cfg.demo_episodes, cfg.setting)
+    demos.save(path)
+    print(f"recorded {path}: {demos.num_episodes} expert episodes", flush=True)
+    return path
+
+
+def _hopper_run(cfg: HopperReproConfig, name: str, seed: int, run_dir: Path, demos: Path) -> Path:
+    from pomil.algos.adversarial import AdversarialConfig, train_adversarial
+    from pomil.algos.bc import BCConfig, train_bc
+    from pomil.config import from_dict, load_config_file
+
+    if name.startswith("bc-"):
+        return train_bc(BCConfig(demos=str(demos), out=str(run_dir), policy=name[3:], iterations=cfg.bc_iterations,
+                                 seed=seed, progress=cfg.progress))
+    values: dict[str, Any] = {**HOPPER_ADVERSARIAL, "iterations": cfg.adversarial_iterations}
+    if cfg.adversarial_config:
+        values.update(load_config_file(cfg.adversarial_config))
+    values.update(learner=name, demos=str(demos), out=str(run_dir), seed=seed, progress=cfg.progress)
+    return train_adversarial(from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "hopper recipe"))
+
+
+def _curve(run_dir: Path, tasks: list[str]) -> dict[str, list[float]]:
+    """Evaluation rows of a run's metrics.csv: env steps and normalised return per task."""
+    import csv
+
+    path = run_dir / "metrics.csv"
+    rows = [r for r in csv.DictReader(open(path, newline=""))] if path.exists() else []
+    rows = [r for r in rows if r.get("eval/env_steps")]
+    curve = {"env_steps": [float(r["eval/env_steps"]) for r in rows]}
+    for t in tasks:
+        curve[t] = [float(r[f"eval/{t}/normalised_return"]) for r in rows]
+    return curve
+
+
+def hopper_table(results: dict[str, Any]) -> str:
+    tasks = results["tasks"]
+    head = "| learner | " + " | ".join(f"{t}: norm. return | {t}: progress | {t}: displacement" for t in tasks) + " | wall s / seed |"
+    lines = [head, "|---|" + "---|" * (3 * len(tasks)) + "---|"]
+    for name, r in results["learners"].items():
+        s = r["summary"]
+        cells = [f"{s[t][m][0]:.2f} ± {s[t][m][1]:.2f}" for t in tasks for m in METRICS]
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {np.mean(r['wall_s']):.0f} |")
+    lines += ["", f"mean ± std over {results['seeds']} seed(s), {results['setting']} setting; each task scored for the code "
+              f"matched to it ({results['episodes_per_code']} deterministic episodes per code and task). Expert returns: "
+              + ", ".join(f"{t} {v:.1f}" for t, v in results["reference"]["expert_returns"].items())
+              + "; zero-action returns: " + ", ".join(f"{t} {v:.1f}" for t, v in results["reference"]["still_returns"].items()) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
+    from pomil.eval.locomotion import evaluate_tasks, reference_of
+    from pomil.eval.plots import learning_curves
+
+    t_start = time.perf_counter()
+    demos_path = hopper_demos(cfg)
+    demos = Demonstrations.load(demos_path)
+    reference = reference_of(demos.metadata, str(demos_path))
+    tasks = list(reference["tasks"])
+    out = cfg.path("out")
+    results: dict[str, Any] = {
+        "experiment": "hopper", "setting": cfg.setting, "config": to_dict(cfg), "seeds": cfg.seeds, "tasks": tasks,
+        "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path), "reference": reference,
+        "adversarial_settings": {**HOPPER_ADVERSARIAL, "iterations": cfg.adversarial_iterations},
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform()},
+        "learners": {},
+    }
+    for name in cfg.learners:
+        runs, walls, curves = [], [], []
+        for seed in range(cfg.seeds):
+            print(f"[{name}] seed {seed}: training", flush=True)
+            t0 = time.perf_counter()
+            run_dir = cfg.path("runs") / name / f"seed{seed}"
+            ckpt = _hopper_run(cfg, name, seed, run_dir, demos_path)
+            walls.append(time.perf_counter() - t0)
+            policy = TrainedPolicy.load(ckpt)
+            policy.save(out / "policies" / f"{name}-seed{seed}.pt")
+            metrics = evaluate_tasks(policy, reference, cfg.episodes_per_code, seed=1000 + seed)
+            metrics.update(checkpoint=str(ckpt), train_seed=seed)
+            runs.append(metrics)
+            curves.append(_curve(run_dir, tasks))
+            print(f"[{name}] seed {seed}: " + "; ".join(
+                f"{t} (code {metrics['tasks'][t]['code']}): norm {metrics['tasks'][t]['normalised_return']:.2f}, "
+                f"progress {metrics['tasks'][t]['progress']:.2f}, displacement {metrics['tasks'][t]['displacement_ratio']:.2f}"
+                for t in tasks) + f" ({walls[-1]:.0f} s)", flush=True)
+        summary = {t: {m: [float(np.mean([r["tasks"][t][m] for r in runs])), float(np.std([r["tasks"][t][m] for r in runs]))]
+                       for m in METRICS} for t in tasks}
+        results["learners"][name] = {"runs": runs, "summary": summary, "wall_s": walls, "curves": curves}
+    results["wall_time_s"] = time.perf_counter() - t_start
+    write_json(out / "metrics.json", results)
+    table = hopper_table(results)
+    atomic_write(out / "table.md", lambda f: f.write(table.encode()))
+    learning_curves(results, out / "figure.png")
+    print(table)
+    print(f"wrote {out}/metrics.json, table.md, figure.png in {results['wall_time_s']:.0f} s")
+    return results

@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from pomil.algos.adversarial import AdversarialConfig, build_modules, collect, critic_loss, posterior_loss, train_adversarial
+from pomil.algos.adversarial import AdversarialConfig, build_modules, critic_loss, posterior_loss, train_adversarial
+from pomil.rl.collect import collect
 from pomil.cli import main
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.nn import heads
@@ -110,7 +111,7 @@ def test_adversarial_same_seed_same_run_and_resume(demos_path, tmp_path):
 def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_path):
     m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), 2, 2, 2, "cpu")
     env = make_vec_env("pomil/Circles-v0", {}, 8)
-    roll, _, _, env_return = collect(env, m, 2, executed_actions_fn("pomil/Circles-v0", {}), torch.Generator().manual_seed(0),
+    roll, _, _, env_rewards = collect(env, m.policy, m.value, 2, executed_actions_fn("pomil/Circles-v0", {}), torch.Generator().manual_seed(0),
                                      torch.device("cpu"))
     norms = roll.executed_actions.norm(dim=-1)
     torch.testing.assert_close(norms, torch.ones_like(norms))  # expert demonstrations hold unit vectors too
@@ -119,7 +120,7 @@ def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_p
     assert (roll.prev_actions[0] == 0).all()
     positions = roll.observations[-1] + roll.executed_actions[-1]  # where the episode ended
     torch.testing.assert_close(positions, env.positions)
-    assert env_return.shape == (8,) and (env_return <= 0).all()
+    assert env_rewards.shape == (33, 8) and (env_rewards <= 0).all()
 
 
 def test_bc_warm_start_puts_the_policy_on_the_circles(demos_path, tmp_path):

@@ -50,6 +50,7 @@ from pomil.nn import heads
 from pomil.nn.heads import BeliefHead
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.rl.gae import gae
+from pomil.rl.collect import collect
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import (
@@ -126,58 +127,6 @@ def _first_step_starts(mask: torch.Tensor) -> torch.Tensor:
     starts = torch.zeros_like(mask)
     starts[0] = True
     return starts
-
-
-# ------------------------------------------------------------------ rollout
-@torch.no_grad()
-def collect(env, m: Modules, num_codes: int, execute: Callable[[torch.Tensor], torch.Tensor], generator: torch.Generator,
-            device: torch.device) -> tuple[Rollout, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One episode in each of the env's N copies (circles episodes have one fixed length).
-    ``execute`` maps raw actions to executed ones (``pomil.envs.executed_actions_fn``).
-
-    Returns (rollout, next_values (T, N) = V(s_{t+1}) with the final observation's
-    value at the last step, code index per env (N,), the environment's own
-    return per env (N,): never used for learning, logged as a diagnostic)."""
-    n = env.num_envs
-    obs = env.reset()
-    code_idx = torch.randint(max(num_codes, 1), (n,), generator=generator).to(device)
-    codes = F.one_hot(code_idx, num_codes).float() if num_codes else torch.zeros(n, 0, device=device)
-    h_pi, h_v = m.policy.initial_state(n, device), m.value.initial_state(n, device)
-    h0_pi, h0_v = h_pi.clone(), h_v.clone()
-    prev = torch.zeros(n, m.policy.arch.act_dim, device=device)
-    start = torch.ones(n, dtype=torch.bool, device=device)
-    env_return = torch.zeros(n, device=device)
-    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "exec", "prev", "start", "logp", "value", "term", "trunc")}
-    while True:
-        dist, h_pi = m.policy.step(obs, prev, h_pi, start, codes)
-        action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=generator).to(device)
-        v, h_v = m.value.step(obs, prev, h_v, start, codes)
-        executed = execute(action)
-        rec["obs"].append(obs)
-        rec["act"].append(action)
-        rec["exec"].append(executed)
-        rec["prev"].append(prev * (~start).unsqueeze(-1))
-        rec["start"].append(start)
-        rec["logp"].append(dist.log_prob(action).sum(-1))
-        rec["value"].append(v)
-        obs, env_reward, term, trunc = env.step(action)
-        env_return = env_return + env_reward
-        rec["term"].append(term)
-        rec["trunc"].append(trunc)
-        prev, start = executed, torch.zeros_like(start)
-        if bool((term | trunc).all()):
-            break
-    v_final, _ = m.value.step(obs, prev, h_v, start, codes)
-    st = {k: torch.stack(v) for k, v in rec.items()}
-    T = st["obs"].shape[0]
-    next_values = torch.cat([st["value"][1:], v_final.unsqueeze(0)])
-    roll = Rollout(
-        observations=st["obs"], actions=st["act"], env_actions=st["exec"], prev_actions=st["prev"], starts=st["start"],
-        codes=codes.unsqueeze(0).expand(T, -1, -1), log_probs=st["logp"], values=st["value"],
-        terminated=st["term"], truncated=st["trunc"], mask=torch.ones(T, n, dtype=torch.bool, device=device),
-        h0_policy=h0_pi, h0_value=h0_v,
-    )
-    return roll, next_values, code_idx, env_return
 
 
 # -------------------------------------------------------------- critic, posterior
@@ -314,8 +263,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     device = resolve_device(cfg.device)
     demos = Demonstrations.load(cfg.demos)
     env_id, env_kwargs = check_demos_env(demos, cfg.demos)
+    env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
+    evaluate = make_evaluator(cfg, env_info, demos)
     try:
-        env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device)
+        env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device, env_info["observation_mask"], seed=cfg.seed)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: {err}") from None
     execute = executed_actions_fn(env_id, env_kwargs)
@@ -340,14 +291,13 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     if start == 0 and cfg.bc_init_iterations > 0:
         bc_warm_start(m.policy, expert, expert_prev, num_codes, cfg, gen)
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
-                       key_stats=("eval/nmi", "eval/mean_purity", "posterior/accuracy", "critic/wasserstein"))
+                       key_stats=("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein"))
 
     def checkpoint(iteration: int) -> None:
         logger.flush()
         save_checkpoint(ckpt_path, {
             "algo": cfg.learner, "iteration": iteration, "config": to_dict(cfg),
-            "env": {"id": env_id, "kwargs": env_kwargs},
-            "policy_arch": arch.to_dict(), "policy": m.policy.state_dict(),
+            "env": env_info, "policy_arch": arch.to_dict(), "policy": m.policy.state_dict(),
             "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
             "optimizers": {k: o.state_dict() for k, o in opt.items()}, "rng": rng_state(gen),
         })
@@ -359,8 +309,8 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         stats: dict[str, float] = {}
         # 1. rollout
         t0 = time.perf_counter()
-        roll, next_values, code_idx, env_return = collect(env, m, num_codes, execute, gen, device)
-        stats["env/true_return"] = env_return.mean().item()
+        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device)
+        stats["env/true_return"] = env_rewards.sum(0).mean().item()
         steps_done += roll.num_steps * roll.num_envs
         t1 = time.perf_counter()
         # 2. critic
@@ -421,8 +371,9 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         for k, dt in zip(timers, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             timers[k] += dt
         # 6. evaluation and logging
-        if cfg.eval_every and (it % cfg.eval_every == 0 or it == cfg.iterations) and env_id == "pomil/Circles-v0":
-            stats.update(evaluate_now(m.policy, cfg, env_id, env_kwargs, device))
+        if evaluate is not None and (it % cfg.eval_every == 0 or it == cfg.iterations):
+            stats.update(evaluate(m.policy))
+            stats["eval/env_steps"] = float(steps_done)
         if it % cfg.log_every == 0 or it in (1, cfg.iterations) or any(k.startswith("eval/") for k in stats):
             elapsed = time.perf_counter() - t_start
             stats.update({"time/elapsed_s": elapsed, "time/env_steps_per_s": steps_done / max(elapsed, 1e-9),
@@ -470,13 +421,34 @@ def _posterior_batches(roll: Rollout, code_steps: torch.Tensor, cfg: Adversarial
     yield code_steps[t_idx, env.unsqueeze(0).expand_as(t_idx)], batch
 
 
-def evaluate_now(policy: GaussianPolicy, cfg: AdversarialConfig, env_id: str, env_kwargs: dict[str, Any], device) -> dict[str, float]:
-    from pomil.eval.rollout import evaluate_circles
+def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any], demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
+    """The periodic evaluation of a run: mode metrics on circles, per-task figures
+    on multi-task locomotion demonstrations (``pomil demos hopper``); None otherwise."""
+    if not cfg.eval_every:
+        return None
+    if env_info["id"] == "pomil/Circles-v0":
+        from pomil.eval.rollout import evaluate_circles
 
-    rng_state_before = torch.get_rng_state()
-    metrics, _ = evaluate_circles(TrainedPolicy(policy, cfg.learner, {"id": env_id, "kwargs": env_kwargs}, device),
-                                  cfg.eval_episodes, seed=12345)
-    policy.train()
-    torch.set_rng_state(rng_state_before)
-    return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
-            "eval/modes_covered": float(metrics["modes_covered"]), "eval/none_share": metrics["overall_none_share"]}
+        def measure(tp: TrainedPolicy) -> dict[str, float]:
+            metrics, _ = evaluate_circles(tp, cfg.eval_episodes, seed=12345)
+            return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
+                    "eval/modes_covered": float(metrics["modes_covered"]), "eval/none_share": metrics["overall_none_share"]}
+    elif "tasks" in demos.metadata:
+        from pomil.eval.locomotion import evaluate_tasks, reference_of
+
+        reference = reference_of(demos.metadata, cfg.demos)
+
+        def measure(tp: TrainedPolicy) -> dict[str, float]:
+            res = evaluate_tasks(tp, reference, cfg.eval_episodes, seed=12345)
+            return {f"eval/{task}/{k}": float(v) for task, r in res["tasks"].items() for k, v in r.items()}
+    else:
+        return None
+
+    def evaluate(policy: GaussianPolicy) -> dict[str, float]:
+        rng_state_before = torch.get_rng_state()
+        stats = measure(TrainedPolicy(policy, cfg.learner, env_info, policy.log_std.device))
+        policy.train()
+        torch.set_rng_state(rng_state_before)
+        return stats
+
+    return evaluate

@@ -101,7 +101,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
         logger.flush()
         save_checkpoint(ckpt_path, {
             "algo": "bc", "iteration": iteration, "config": to_dict(config),
-            "env": {"id": env_id, "kwargs": env_kwargs},
+            "env": {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")},
             "policy_arch": arch.to_dict(), "policy": policy.state_dict(),
             "optimizers": {"policy": optimizer.state_dict()}, "rng": rng_state(generator),
         })

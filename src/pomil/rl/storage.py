@@ -1,12 +1,14 @@
 """Rollout storage (T, N, ...) with the initial hidden states, and its minibatches.
 
-Two ways to cut a rollout into recurrent minibatches:
+Three ways to cut a rollout into minibatches:
 
 * ``sequence_batches``: whole columns (T steps of a few environments) from
   their stored initial hidden states — exactly the computation of the rollout.
 * ``window_batches``: the paper's "bootstrapped random updates" (Hausknecht &
   Stone): random windows of L steps from random environments, the hidden
   state zeroed at each window's start.
+* ``step_batches``: single steps in random order, for feed-forward networks
+  (each batch a (1, B) rollout).
 """
 
 from __future__ import annotations
@@ -122,3 +124,11 @@ class Rollout:
         per_batch = max(1, (self.num_steps * self.num_envs) // (length * num_batches))
         for _ in range(num_batches):
             yield self.windows(length, per_batch, generator)
+
+    def step_batches(self, num_batches: int, generator: torch.Generator) -> Iterator["Rollout"]:
+        """Every step once, shuffled, in ``num_batches`` (1, B) batches (feed-forward networks only)."""
+        dev = self.starts.device
+        perm = torch.randperm(self.num_steps * self.num_envs, generator=generator).to(dev)
+        for chunk in perm.chunk(num_batches):
+            t, env = chunk // self.num_envs, chunk % self.num_envs
+            yield self._gather(t.unsqueeze(0), env, self.h0_policy[env], self.h0_value[env], zero_first=True)

@@ -1,0 +1,163 @@
+"""PPO experts: an MLP policy on the full observation, trained on the task reward.
+
+The experts whose demonstrations the imitation learners see.  One readable
+loop: collect one episode in each of ``num_envs`` batched copies, GAE,
+``epochs`` passes of shuffled single-step minibatches through the clipped
+PPO loss.  Observations are normalised by running statistics (kept in the
+checkpoint and applied by :class:`pomil.TrainedPolicy`); rewards are divided
+by the running standard deviation of the discounted return; the learning rate
+decays linearly to zero.  These are the usual PPO settings for MuJoCo
+locomotion.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from pomil.config import RunConfig, check_positive, option, to_dict
+from pomil.envs import executed_actions_fn, make_vec_env
+from pomil.envs.locomotion import HOPPER_ID, hopper_kwargs
+from pomil.nn import heads
+from pomil.nn.normalize import RunningNorm
+from pomil.nn.policy import GaussianPolicy, PolicyArch
+from pomil.rl.collect import collect
+from pomil.rl.gae import gae
+from pomil.rl.ppo import normalize, ppo_loss
+from pomil.training import RunLogger, resolve_device, resume_run, rng_state, save_checkpoint, seed_everything, write_json
+
+
+@dataclass(frozen=True)
+class ExpertConfig(RunConfig):
+    task: Literal["forward", "backward"] = option("forward", "Hopper task: forward_reward_weight +1 or -1")
+    setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
+    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)")
+    num_envs: int = option(64, "environment copies stepped together")
+    hidden_size: int = option(64, "width of the policy's and value's hidden layers")
+    lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)")
+    epochs: int = option(10, "PPO epochs per iteration")
+    minibatches: int = option(16, "minibatches per epoch")
+    clip: float = option(0.2, "PPO ratio clip")
+    gamma: float = option(0.99, "discount")
+    gae_lambda: float = option(0.95, "GAE lambda")
+    ent_coef: float = option(0.0, "entropy bonus")
+    vf_coef: float = option(0.5, "value-loss weight")
+    max_grad_norm: float = option(0.5, "gradient-norm clip")
+    log_std_init: float = option(0.0, "initial log std of the policy")
+    log_every: int = option(5, "iterations between log rows")
+    checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_positive(self, "iterations", "num_envs", "hidden_size", "epochs", "minibatches")
+        if self.lr <= 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+
+    @property
+    def env_kwargs(self) -> dict:
+        return hopper_kwargs(self.task, self.setting)
+
+
+class _NormalizedObs:
+    """Observations through a RunningNorm, its statistics updated while ``training``."""
+
+    def __init__(self, env, norm: RunningNorm) -> None:
+        self.env, self.norm, self.training = env, norm, True
+        self.num_envs = env.num_envs
+
+    def _obs(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.training:
+            self.norm.update(obs)
+        return self.norm(obs)
+
+    def reset(self) -> torch.Tensor:
+        return self._obs(self.env.reset())
+
+    def step(self, actions: torch.Tensor):
+        obs, *rest = self.env.step(actions)
+        return (self._obs(obs), *rest)
+
+
+def discounted_returns(rewards: torch.Tensor, mask: torch.Tensor, gamma: float) -> torch.Tensor:
+    """Return-to-go of each valid step of (T, N) episodes that start at t = 0."""
+    out = torch.zeros_like(rewards)
+    running = torch.zeros_like(rewards[0])
+    for t in range(rewards.shape[0] - 1, -1, -1):
+        running = (rewards[t] + gamma * running) * mask[t]
+        out[t] = running
+    return out
+
+
+def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
+    run_dir = Path(cfg.out)
+    ckpt_path = run_dir / "checkpoint.pt"
+    device = resolve_device(cfg.device)
+    env_kwargs = cfg.env_kwargs
+    raw_env = make_vec_env(HOPPER_ID, env_kwargs, cfg.num_envs, device, seed=cfg.seed)
+    obs_norm = RunningNorm(raw_env.obs_dim).to(device)
+    env = _NormalizedObs(raw_env, obs_norm)
+    reward_norm = RunningNorm(1).to(device)
+    execute = executed_actions_fn(HOPPER_ID, env_kwargs)
+    gen = seed_everything(cfg.seed)
+    arch = PolicyArch(raw_env.obs_dim, raw_env.act_dim, "mlp", cfg.hidden_size, 0, cfg.log_std_init)
+    policy = GaussianPolicy(arch).to(device)
+    value = heads.value(raw_env.obs_dim, raw_env.act_dim, 0, "mlp", cfg.hidden_size).to(device)
+    params = list(policy.parameters()) + list(value.parameters())
+    opt = torch.optim.Adam(params, lr=cfg.lr, eps=1e-5)
+    nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
+    start = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else 0
+    write_json(run_dir / "config.json", {"algo": "expert", **to_dict(cfg)})
+    logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.task}",
+                       key_stats=("env/return", "ppo/approx_kl"))
+    env_info = {"id": HOPPER_ID, "kwargs": env_kwargs, "observation_mask": None}
+
+    def checkpoint(iteration: int) -> None:
+        logger.flush()
+        save_checkpoint(ckpt_path, {
+            "algo": "expert", "iteration": iteration, "config": to_dict(cfg), "env": env_info,
+            "policy_arch": arch.to_dict(), "policy": policy.state_dict(), "obs_norm": obs_norm.state_dict(),
+            "nets": {k: n.state_dict() for k, n in nets.items()},
+            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen),
+        })
+
+    steps_done = 0
+    t_start = time.perf_counter()
+    for it in range(start + 1, cfg.iterations + 1):
+        for group in opt.param_groups:
+            group["lr"] = cfg.lr * (1.0 - (it - 1) / cfg.iterations)
+        roll, next_values, _, raw_rewards = collect(env, policy, value, 0, execute, gen, device)
+        steps_done += int(roll.mask.sum())
+        # Rewards divided by the running std of the discounted return.
+        reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
+        r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)
+        adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
+        roll = roll.with_(rewards=r, advantages=adv, returns=ret)
+        stats: dict[str, float] = {}
+        for _ in range(cfg.epochs):
+            for b in roll.step_batches(cfg.minibatches, gen):
+                dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts)
+                new_v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts)
+                loss, stats = ppo_loss(dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v,
+                                       b.values, b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, None, cfg.vf_coef, cfg.ent_coef)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
+                opt.step()
+        if it % cfg.log_every == 0 or it in (1, cfg.iterations):
+            elapsed = time.perf_counter() - t_start
+            stats.update({"env/return": raw_rewards.sum(0).mean().item(), "env/steps": float(steps_done),
+                          "time/elapsed_s": elapsed, "time/env_steps_per_s": steps_done / max(elapsed, 1e-9),
+                          "policy/log_std": policy.log_std.mean().item()})
+            logger.log(it, stats)
+        if it % cfg.checkpoint_every == 0 and it != cfg.iterations:
+            checkpoint(it)
+        logger.update()
+    checkpoint(cfg.iterations)
+    logger.close()
+    raw_env.close()
+    return ckpt_path

@@ -1,0 +1,34 @@
+"""Per-task scores and code-to-task matching on constructed cases."""
+
+import numpy as np
+import pytest
+
+from pomil.eval.locomotion import match_codes, task_scores
+
+REFERENCE = {
+    "tasks": {"forward": {"forward_reward_weight": 1.0}, "backward": {"forward_reward_weight": -1.0}},
+    "expert_returns": {"forward": 300.0, "backward": 200.0},
+    "still_returns": {"forward": 100.0, "backward": 150.0},
+    "expert_displacement": {"forward": 2.0, "backward": 1.0},
+}
+
+
+def test_task_scores_numbers():
+    s = task_scores(200.0, 1.5, REFERENCE, "forward")
+    assert s["normalised_return"] == pytest.approx(200 / 300)
+    assert s["progress"] == pytest.approx((200 - 100) / (300 - 100))
+    assert s["displacement_ratio"] == pytest.approx(0.75)
+    b = task_scores(150.0, -0.5, REFERENCE, "backward")  # standing still on the backward task
+    assert b["normalised_return"] == pytest.approx(0.75) and b["progress"] == pytest.approx(0.0)
+    assert b["displacement_ratio"] == pytest.approx(0.5)  # moved 0.5 backward, expert 1.0
+
+
+def test_match_codes_one_to_one_beats_greedy():
+    # greedy would give both tasks code 0; the best one-to-one total is code 1 -> task 0, code 0 -> task 1
+    score = np.array([[0.9, 0.8], [0.85, 0.1]])
+    assert match_codes(score) == [1, 0]
+    assert match_codes(np.array([[0.2, 0.9], [0.8, 0.1], [0.5, 0.5]])) == [1, 0]
+
+
+def test_match_codes_with_fewer_codes_than_tasks_takes_each_tasks_best():
+    assert match_codes(np.array([[0.3, -1.0]])) == [0, 0]

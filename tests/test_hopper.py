@@ -1,0 +1,76 @@
+"""Shipped Hopper demonstrations and experts; CLI smoke runs on Hopper."""
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pomil.api import TrainedPolicy
+from pomil.cli import main
+from pomil.data import Demonstrations, check_demos_env
+from pomil.envs import executed_actions_fn, make_vec_env
+from pomil.envs.locomotion import HOPPER_ID, hopper_kwargs
+from pomil.eval.locomotion import reference_of, rollout_locomotion
+from pomil.nn import heads
+from pomil.nn.policy import GaussianPolicy, PolicyArch
+from pomil.rl.collect import collect
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMOS = ROOT / "data" / "hopper-paper.npz"
+EXPERTS = {t: ROOT / "data" / "experts" / f"hopper-{t}.pt" for t in ("forward", "backward")}
+
+
+def test_shipped_demonstrations_load_and_validate():
+    demos = Demonstrations.load(DEMOS)
+    env_id, kwargs = check_demos_env(demos, str(DEMOS))
+    assert env_id == HOPPER_ID and kwargs == hopper_kwargs("forward", "paper")
+    assert demos.num_episodes == 400 and (demos.episode_lengths == 128).all()
+    assert np.bincount(demos.labels).tolist() == [200, 200]
+    assert demos.obs_dim == 5 and demos.states.shape[1] == 11
+    np.testing.assert_array_equal(demos.observations, demos.states[:, :5])  # qpos[1:], no velocities
+    ref = reference_of(demos.metadata)
+    assert ref["tasks"]["backward"]["forward_reward_weight"] == -1.0
+    for task in ("forward", "backward"):  # experts well above standing still
+        assert ref["expert_returns"][task] > ref["still_returns"][task] + 100
+        assert ref["expert_displacement"][task] > 1.0
+
+
+def test_shipped_experts_reproduce_their_recorded_returns():
+    demos = Demonstrations.load(DEMOS)
+    for task, path in EXPERTS.items():
+        expert = TrainedPolicy.load(path)
+        roll = rollout_locomotion(expert, hopper_kwargs(task, "paper"), 16, seed=99)
+        recorded = demos.metadata["expert_returns"][task]
+        assert abs(roll["returns"].mean() - recorded) < 0.1 * recorded, (task, roll["returns"].mean(), recorded)
+
+
+def test_collect_masks_steps_after_termination():
+    env = make_vec_env(HOPPER_ID, hopper_kwargs("forward", "standard"), 4, seed=0)
+    policy = GaussianPolicy(PolicyArch(11, 3, "mlp", 16, 0, 1.0))  # wide noise: falls within a few dozen steps
+    value = heads.value(11, 3, 0, "mlp", 16)
+    roll, _, _, rewards = collect(env, policy, value, 0, executed_actions_fn(HOPPER_ID, {}), torch.Generator().manual_seed(0),
+                                  torch.device("cpu"))
+    lengths = roll.mask.sum(0)
+    assert roll.num_steps == int(lengths.max()) < 1000
+    for i, n in enumerate(lengths.tolist()):
+        assert roll.mask[:n, i].all() and not roll.mask[n:, i].any()
+        assert bool(roll.terminated[n - 1, i]) and roll.terminated[:, i].sum() == 1
+        assert (rewards[n:, i] == 0).all()
+
+
+def test_cli_expert_and_infogail_pomdp_smoke(tmp_path, capsys):
+    out = tmp_path / "expert"
+    assert main(["experts", "hopper", "--task", "backward", "--iterations", "2", "--num-envs", "8", "--epochs", "2",
+                 "--minibatches", "4", "--out", str(out), "--no-progress"]) == 0
+    assert (out / "checkpoint.pt").exists() and (out / "evaluation.json").exists()
+    run = tmp_path / "ip"
+    assert main(["train", "infogail-pomdp", "--demos", str(DEMOS), "--out", str(run), "--iterations", "2", "--num-envs", "8",
+                 "--bc-init-iterations", "2", "--eval-every", "1", "--eval-episodes", "2", "--critic-batch", "8",
+                 "--no-progress"]) == 0
+    header = (run / "metrics.csv").read_text().splitlines()[0]
+    assert "eval/forward/normalised_return" in header and "eval/backward/progress" in header
+    capsys.readouterr()
+    assert main(["evaluate", str(run / "checkpoint.pt"), "--demos", str(DEMOS), "--episodes-per-code", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "forward" in printed and "displacement ratio" in printed
+    assert main(["evaluate", str(run / "checkpoint.pt")]) == 2  # a Hopper policy needs --demos
