@@ -78,7 +78,7 @@ def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting
     tasks = list(experts)
     kwargs = {t: hopper_kwargs(t, setting) for t in tasks}
     mask = resolve_observation_mask(HOPPER_ID, kwargs[tasks[0]], observation_mask)
-    obs_all, states_all, acts_all, labels, lengths = [], [], [], [], []
+    states_all, acts_all, labels, lengths = [], [], [], []
     ref: dict[str, dict[str, float]] = {"expert_returns": {}, "expert_displacement": {}, "still_returns": {}}
     for j, task in enumerate(tasks):
         expert = TrainedPolicy.load(experts[task])

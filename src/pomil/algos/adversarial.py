@@ -98,6 +98,7 @@ class AdversarialConfig(RunConfig):
     window_length: int = option(8, "steps per window in window mode")
     bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)")
     bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start")
+    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step")
     log_std_init: float = option(-1.0, "initial log std of the policy")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
     eval_every: int = option(25, "iterations between mode evaluations (circles; 0: off)")
@@ -107,7 +108,7 @@ class AdversarialConfig(RunConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs",
+        check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs", "bc_init_batch",
                        "minibatches", "window_length", "eval_episodes")
         if self.bc_init_iterations < 0:
             raise ValueError(f"bc_init_iterations must be >= 0, got {self.bc_init_iterations}")
@@ -404,7 +405,7 @@ def bc_warm_start(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: t
     opt = torch.optim.Adam(policy.parameters(), lr=cfg.bc_init_lr)
     stats: dict[str, float] = {}
     for _ in range(cfg.bc_init_iterations):
-        stats = bc_step(policy, opt, expert, expert_prev, cfg.num_envs, gen, num_codes)
+        stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes)
     return stats
 
 

@@ -1,0 +1,109 @@
+"""Hopper throughput, measured in one run on this machine.
+
+Prints env-steps/s of:
+
+1. the raw batched simulator (``pomil.envs.locomotion.HopperSim``: N MjData
+   stepped by a thread pool), random actions;
+2. gymnasium's ``SyncVectorEnv`` of Hopper-v5, random actions (the peer);
+3. one env at a time through ``gymnasium.make`` (the raw simulator as most
+   code uses it);
+4. expert PPO training (``pomil experts hopper``: rollouts + updates);
+5. InfoGAIL-POMDP training on the shipped demonstrations with the Hopper
+   recipe of ``pomil reproduce hopper`` (everything included: rollout,
+   critic, posterior, PPO; BC warm start off so that only the loop is timed).
+
+    .venv/bin/python benchmarks/hopper_speed.py [--num-envs 64] [--iterations 3] [--device cpu]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import tempfile
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+from pomil.algos.adversarial import AdversarialConfig, train_adversarial
+from pomil.algos.expert import ExpertConfig, train_expert
+from pomil.config import from_dict
+from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs
+from pomil.reproduce import HOPPER_ADVERSARIAL
+
+
+def sim_speed(num_envs: int, steps: int) -> float:
+    sim = HopperSim(num_envs, hopper_kwargs("forward", "paper"))
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(-1, 1, (steps, num_envs, 3))
+    sim.reset(0)
+    t0 = time.perf_counter()
+    for t in range(steps):
+        if sim.done.all():
+            sim.reset()
+        sim.step(acts[t])
+    dt = time.perf_counter() - t0
+    sim.close()
+    return steps * num_envs / dt
+
+
+def gym_vector_speed(num_envs: int, steps: int) -> float:
+    kw = hopper_kwargs("forward", "paper")
+    env = gym.vector.SyncVectorEnv([lambda: gym.make(HOPPER_ID, **kw) for _ in range(num_envs)])
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.step(env.action_space.sample())
+    dt = time.perf_counter() - t0
+    env.close()
+    return steps * num_envs / dt
+
+
+def gym_single_speed(steps: int) -> float:
+    env = gym.make(HOPPER_ID, **hopper_kwargs("forward", "paper"))
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _, _, term, trunc, _ = env.step(env.action_space.sample())
+        if term or trunc:
+            env.reset()
+    return steps / (time.perf_counter() - t0)
+
+
+def last_row(run: Path) -> dict[str, str]:
+    return list(csv.DictReader(open(run / "metrics.csv", newline="")))[-1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--num-envs", type=int, default=HOPPER_ADVERSARIAL["num_envs"], help="environment copies for 1, 2 and 5")
+    ap.add_argument("--iterations", type=int, default=3, help="training iterations timed for 4 and 5")
+    ap.add_argument("--demos", default="data/hopper-paper.npz")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+    n = args.num_envs
+    rows = [("batched simulator (HopperSim)", sim_speed(n, 256)),
+            (f"gymnasium SyncVectorEnv x{n}", gym_vector_speed(n, 64)),
+            ("gymnasium.make, one env", gym_single_speed(4000))]
+    with tempfile.TemporaryDirectory() as tmp:
+        train_expert(ExpertConfig(out=f"{tmp}/expert", iterations=args.iterations, progress=False, log_every=1, device=args.device))
+        rows.append(("expert PPO training (64 envs, MLP)", float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
+        values = {**HOPPER_ADVERSARIAL, "learner": "infogail-pomdp", "demos": args.demos, "out": f"{tmp}/ip",
+                  "iterations": args.iterations, "bc_init_iterations": 0, "eval_every": 0, "log_every": 1,
+                  "progress": False, "device": args.device, "num_envs": n}
+        train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
+        row = last_row(Path(tmp) / "ip")
+        rows.append((f"InfoGAIL-POMDP training ({n} envs, all updates)", float(row["time/env_steps_per_s"])))
+    base = rows[1][1]
+    print(f"{'what':52s} {'env-steps/s':>12s} {'vs SyncVectorEnv':>17s}")
+    for name, v in rows:
+        print(f"{name:52s} {v:12,.0f} {v / base:16.2f}x")
+    shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
+    print("InfoGAIL-POMDP time shares: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
+
+
+if __name__ == "__main__":
+    main()
