@@ -9,6 +9,12 @@ purity, modes covered, NMI), and writes into ``--out``::
     figure.png     Figure-1-style trajectories: experts, then one panel per learner
     rollouts.npz   the trajectories the figure is drawn from
     infogail-pomdp.pt   the InfoGAIL-POMDP policy of seed 0 (policy only)
+
+``pomil reproduce hopper`` records the Hopper demonstrations from the shipped
+experts if missing, trains every learner for every seed on them, scores each
+task for the code matched to it (normalised return, progress score,
+displacement ratio) and writes metrics.json (with learning curves), table.md,
+figure.png (Figure-2c-style curves over env steps) and policies/.
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import numpy as np
 
@@ -211,7 +217,7 @@ METRICS = ("normalised_return", "progress", "displacement_ratio")
 
 @dataclass(frozen=True)
 class HopperReproConfig:
-    setting: str = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
     out: str = option("", "results directory (default: results/hopper, results/hopper-standard for the standard setting)")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
     demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
