@@ -74,3 +74,21 @@ def test_cli_expert_and_infogail_pomdp_smoke(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "forward" in printed and "displacement ratio" in printed
     assert main(["evaluate", str(run / "checkpoint.pt")]) == 2  # a Hopper policy needs --demos
+
+
+def test_reproduce_hopper_smoke_with_override(tmp_path):
+    import json
+
+    override = tmp_path / "adv.json"
+    override.write_text(json.dumps({"num_envs": 8, "critic_batch": 8, "bc_init_iterations": 2, "eval_every": 1, "eval_episodes": 2}))
+    out = tmp_path / "results"
+    assert main(["reproduce", "hopper", "--seeds", "1", "--learners", "bc-mlp,infogail-pomdp", "--bc-iterations", "2",
+                 "--adversarial-iterations", "1", "--adversarial-config", str(override), "--episodes-per-code", "2",
+                 "--demos", str(DEMOS), "--out", str(out), "--runs", str(tmp_path / "runs"), "--no-progress"]) == 0
+    results = json.loads((out / "metrics.json").read_text())
+    assert results["adversarial_settings"]["num_envs"] == 8  # the user's file, not only the recipe
+    ip = results["learners"]["infogail-pomdp"]
+    assert ip["curves"][0]["env_steps"] == [8 * 128.0]
+    assert set(ip["runs"][0]["tasks"]) == {"forward", "backward"}
+    assert (out / "table.md").exists() and (out / "figure.png").exists()
+    assert (out / "policies" / "infogail-pomdp-seed0.pt").exists()

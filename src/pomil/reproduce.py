@@ -67,43 +67,58 @@ class CirclesReproConfig:
     progress: bool = option(True, "show progress bars")
 
     def __post_init__(self) -> None:
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
-        unknown = sorted(set(self.learners) - set(LEARNERS))
-        if unknown or not self.learners:
-            raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
+        check_runs(self)
+
+    @property
+    def recipe(self) -> dict[str, Any]:
+        return CIRCLES_ADVERSARIAL
+
+    @property
+    def demos_file(self) -> str:
+        return self.demos
 
 
-def _bc(policy: str) -> Callable[[CirclesReproConfig, int, Path], Path]:
-    def run(cfg: CirclesReproConfig, seed: int, run_dir: Path) -> Path:
+def check_runs(cfg: Any) -> None:
+    """Seeds and learner names of a reproduction config."""
+    if cfg.seeds < 1:
+        raise ValueError(f"seeds must be >= 1, got {cfg.seeds}")
+    unknown = sorted(set(cfg.learners) - set(LEARNERS))
+    if unknown or not cfg.learners:
+        raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
+
+
+# Each runner takes a reproduction config (circles or Hopper: both have demos_file,
+# recipe, bc_iterations, adversarial_iterations, adversarial_config, progress).
+def _bc(policy: str) -> Callable[[Any, int, Path], Path]:
+    def run(cfg: Any, seed: int, run_dir: Path) -> Path:
         from pomil.algos.bc import BCConfig, train_bc
 
-        return train_bc(BCConfig(demos=cfg.demos, out=str(run_dir), policy=policy, iterations=cfg.bc_iterations,
+        return train_bc(BCConfig(demos=cfg.demos_file, out=str(run_dir), policy=policy, iterations=cfg.bc_iterations,
                                  seed=seed, progress=cfg.progress))
     return run
 
 
-def _adversarial(learner: str) -> Callable[[CirclesReproConfig, int, Path], Path]:
-    def run(cfg: CirclesReproConfig, seed: int, run_dir: Path) -> Path:
+def _adversarial(learner: str) -> Callable[[Any, int, Path], Path]:
+    def run(cfg: Any, seed: int, run_dir: Path) -> Path:
         from pomil.algos.adversarial import train_adversarial
 
         return train_adversarial(adversarial_config(cfg, learner, seed, run_dir))
     return run
 
 
-def adversarial_config(cfg: CirclesReproConfig, learner: str, seed: int, run_dir: Path):
-    """The recipe, then the user's --adversarial-config file, then this run's own fields."""
+def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path):
+    """The experiment's recipe, then the user's --adversarial-config file, then this run's own fields."""
     from pomil.algos.adversarial import AdversarialConfig
     from pomil.config import from_dict, load_config_file
 
-    values: dict[str, Any] = {**CIRCLES_ADVERSARIAL, "iterations": cfg.adversarial_iterations}
+    values: dict[str, Any] = {**cfg.recipe, "iterations": cfg.adversarial_iterations}
     if cfg.adversarial_config:
         values.update(load_config_file(cfg.adversarial_config))
-    values.update(learner=learner, demos=cfg.demos, out=str(run_dir), seed=seed, progress=cfg.progress)
-    return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "circles recipe")
+    values.update(learner=learner, demos=cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress)
+    return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the experiment's recipe")
 
 
-LEARNERS: dict[str, Callable[[CirclesReproConfig, int, Path], Path]] = {
+LEARNERS: dict[str, Callable[[Any, int, Path], Path]] = {
     "bc-mlp": _bc("mlp"),
     "bc-gru": _bc("gru"),
     "gail": _adversarial("gail"),
@@ -234,11 +249,15 @@ class HopperReproConfig:
     def __post_init__(self) -> None:
         if self.setting not in ("paper", "standard"):
             raise ValueError(f"setting must be 'paper' or 'standard', got {self.setting!r}")
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
-        unknown = sorted(set(self.learners) - set(LEARNERS))
-        if unknown or not self.learners:
-            raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
+        check_runs(self)
+
+    @property
+    def recipe(self) -> dict[str, Any]:
+        return HOPPER_ADVERSARIAL
+
+    @property
+    def demos_file(self) -> str:
+        return str(self.path("demos"))
 
     def path(self, name: str) -> Path:
         suffix = "" if self.setting == "paper" else f"-{self.setting}"
@@ -261,21 +280,6 @@ def hopper_demos(cfg: HopperReproConfig) -> Path:
     demos.save(path)
     print(f"recorded {path}: {demos.num_episodes} expert episodes", flush=True)
     return path
-
-
-def _hopper_run(cfg: HopperReproConfig, name: str, seed: int, run_dir: Path, demos: Path) -> Path:
-    from pomil.algos.adversarial import AdversarialConfig, train_adversarial
-    from pomil.algos.bc import BCConfig, train_bc
-    from pomil.config import from_dict, load_config_file
-
-    if name.startswith("bc-"):
-        return train_bc(BCConfig(demos=str(demos), out=str(run_dir), policy=name[3:], iterations=cfg.bc_iterations,
-                                 seed=seed, progress=cfg.progress))
-    values: dict[str, Any] = {**HOPPER_ADVERSARIAL, "iterations": cfg.adversarial_iterations}
-    if cfg.adversarial_config:
-        values.update(load_config_file(cfg.adversarial_config))
-    values.update(learner=name, demos=str(demos), out=str(run_dir), seed=seed, progress=cfg.progress)
-    return train_adversarial(from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "hopper recipe"))
 
 
 def _curve(run_dir: Path, tasks: list[str]) -> dict[str, list[float]]:
@@ -319,7 +323,8 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     results: dict[str, Any] = {
         "experiment": "hopper", "setting": cfg.setting, "config": to_dict(cfg), "seeds": cfg.seeds, "tasks": tasks,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path), "reference": reference,
-        "adversarial_settings": {**HOPPER_ADVERSARIAL, "iterations": cfg.adversarial_iterations},
+        "adversarial_settings": {k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
+                                 if k not in ("learner", "out", "seed", "progress")},
         "machine": {"python": sys.version.split()[0], "platform": platform.platform()},
         "learners": {},
     }
@@ -329,7 +334,7 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
             print(f"[{name}] seed {seed}: training", flush=True)
             t0 = time.perf_counter()
             run_dir = cfg.path("runs") / name / f"seed{seed}"
-            ckpt = _hopper_run(cfg, name, seed, run_dir, demos_path)
+            ckpt = LEARNERS[name](cfg, seed, run_dir)
             walls.append(time.perf_counter() - t0)
             policy = TrainedPolicy.load(ckpt)
             policy.save(out / "policies" / f"{name}-seed{seed}.pt")

@@ -101,7 +101,7 @@ class AdversarialConfig(RunConfig):
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step")
     log_std_init: float = option(-1.0, "initial log std of the policy")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
-    eval_every: int = option(25, "iterations between mode evaluations (circles; 0: off)")
+    eval_every: int = option(25, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)")
     eval_episodes: int = option(50, "evaluation rollouts per code")
     log_every: int = option(5, "iterations between log rows")
     checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)")

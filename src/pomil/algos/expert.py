@@ -64,15 +64,14 @@ class ExpertConfig(RunConfig):
 
 
 class _NormalizedObs:
-    """Observations through a RunningNorm, its statistics updated while ``training``."""
+    """Observations through a RunningNorm whose statistics every observation updates."""
 
     def __init__(self, env, norm: RunningNorm) -> None:
-        self.env, self.norm, self.training = env, norm, True
+        self.env, self.norm = env, norm
         self.num_envs = env.num_envs
 
     def _obs(self, obs: torch.Tensor) -> torch.Tensor:
-        if self.training:
-            self.norm.update(obs)
+        self.norm.update(obs)
         return self.norm(obs)
 
     def reset(self) -> torch.Tensor:
