@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Literal, get_args, get_origin
 
+import numpy as np
+
 from pomil.config import field_help, from_dict, load_config_file, option
 from pomil.errors import PomilError
 
@@ -97,13 +99,88 @@ class HopperDemosConfig:
     seed: int = option(0, "random seed (reset noise, episode order)")
 
 
-def _mask_arg(text: str) -> str | list[int]:
-    if text == "positions-only":
-        return text
+def _mask_arg(text: str) -> str | list[int] | None:
+    from pomil.envs.wrappers import parse_mask
+
     try:
-        return [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise PomilError(f"--observation-mask: expected 'positions-only' or comma-separated integers, got {text!r}") from None
+        return parse_mask(text)
+    except ValueError as err:
+        raise PomilError(f"--observation-mask: {err}") from None
+
+
+@dataclass(frozen=True)
+class RecordDemosConfig:
+    expert: str = option("", "expert checkpoint (pomil experts ...); demonstrations come from its environment and keywords")
+    out: str = option("", "output .npz file (written atomically)")
+    episodes: int = option(200, "episodes to record")
+    task: str = option("", "task name kept as the episodes' label (default: forward/backward from forward_reward_weight)")
+    observation_mask: str = option("positions-only", "what the learner observes: positions-only, comma-separated indices, or '' (all)")
+    seed: int = option(0, "random seed (reset noise)")
+
+
+def cmd_demos_record(args: argparse.Namespace) -> int:
+    from pomil.experts import record_expert_demos
+
+    cfg: RecordDemosConfig = config_from_args(RecordDemosConfig, args)
+    if not cfg.expert or not cfg.out:
+        raise PomilError("demos record: --expert and --out are required")
+    if not Path(cfg.expert).is_file():
+        raise PomilError(f"{cfg.expert}: no expert checkpoint there (train one: pomil experts train --env-id ...)")
+    try:
+        demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None, _mask_arg(cfg.observation_mask), cfg.seed)
+    except ValueError as err:
+        raise PomilError(f"demos record: {err}") from None
+    demos.save(cfg.out)
+    md = demos.metadata
+    task = md["label_names"][0]
+    print(f"wrote {cfg.out}: {demos.num_episodes} episodes of {md['env_id']} task {task!r} "
+          f"(mean length {demos.episode_lengths.mean():.0f}), observation {md['observation_mask']}; expert return "
+          f"{md['expert_returns'][task]:.1f}, zero actions {md['still_returns'][task]:.1f}")
+    return 0
+
+
+@dataclass(frozen=True)
+class MergeDemosConfig:
+    out: str = option("", "output .npz file (written atomically)")
+    proportions: tuple[float, ...] = option((), "share of each file's episodes, e.g. 1,1 (default: equal)")
+    episodes: int = option(0, "episodes in total (0: as many as the files allow in these proportions)")
+    seed: int = option(0, "random seed (which episodes, their order)")
+
+
+def cmd_demos_merge(args: argparse.Namespace) -> int:
+    from pomil.data import Demonstrations
+    from pomil.experts import merge_demos
+
+    cfg: MergeDemosConfig = config_from_args(MergeDemosConfig, args)
+    if not cfg.out:
+        raise PomilError("demos merge: --out is required")
+    sources = [Demonstrations.load(f) for f in args.files]
+    try:
+        demos = merge_demos(sources, list(cfg.proportions) or None, cfg.episodes or None, cfg.seed, list(args.files))
+    except ValueError as err:
+        raise PomilError(f"demos merge: {err}") from None
+    demos.save(cfg.out)
+    counts = np.bincount(demos.labels, minlength=len(demos.metadata["label_names"]))
+    print(f"wrote {cfg.out}: {demos.num_episodes} episodes, unlabeled for training; labels kept for evaluation: "
+          + ", ".join(f"{n} {c}" for n, c in zip(demos.metadata["label_names"], counts)))
+    return 0
+
+
+def cmd_demos_minari(args: argparse.Namespace) -> int:
+    from pomil.data import Demonstrations
+    from pomil.minari_io import export_minari, import_minari
+
+    if args.env == "import-minari":
+        demos = import_minari(args.dataset_id, args.minari_root, _mask_arg(args.observation_mask))
+        demos.save(args.out)
+        print(f"wrote {args.out}: {demos.num_episodes} episodes of {demos.metadata['env_id']} from Minari dataset "
+              f"{args.dataset_id}, observation {demos.metadata.get('observation_mask')}, "
+              f"{'labelled' if demos.labels is not None else 'no labels'}")
+    else:
+        demos = Demonstrations.load(args.demos)
+        path = export_minari(demos, args.dataset_id, args.minari_root)
+        print(f"wrote Minari dataset {args.dataset_id} at {path}: {demos.num_episodes} episodes")
+    return 0
 
 
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
@@ -129,20 +206,24 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
 def cmd_experts(args: argparse.Namespace) -> int:
     from pomil.algos.expert import ExpertConfig, train_expert
     from pomil.api import TrainedPolicy
-    from pomil.envs.locomotion import hopper_kwargs
+    from pomil.config import parse_kwargs
+    from pomil.envs.locomotion import locomotion_kwargs
     from pomil.eval.locomotion import rollout_locomotion
+    from pomil.training import write_json
 
     cfg: ExpertConfig = config_from_args(ExpertConfig, args)
     ckpt = train_expert(cfg, resume=args.resume)
     policy = TrainedPolicy.load(ckpt)
+    # Deterministic returns in both settings (locomotion tasks) or in the trained one.
+    settings = ("paper", "standard") if cfg.task != "none" else (cfg.setting,)
     report = {}
-    for setting in ("paper", "standard"):
-        roll = rollout_locomotion(policy, hopper_kwargs(cfg.task, setting), 20, seed=10_000)
+    for setting in settings:
+        kwargs = {**locomotion_kwargs(cfg.env_id, cfg.task, setting), **parse_kwargs(cfg.env_kwargs)}
+        roll = rollout_locomotion(policy, kwargs, 20, seed=10_000, observation_mask=policy.env.get("observation_mask"))
         report[setting] = {"return": float(roll["returns"].mean()), "return_std": float(roll["returns"].std()),
                            "length": float(roll["length"].mean()), "displacement": float(roll["displacement"].mean())}
-    from pomil.training import write_json
-
-    write_json(Path(cfg.out) / "evaluation.json", {"task": cfg.task, "deterministic": True, "episodes": 20, **report})
+    write_json(Path(cfg.out) / "evaluation.json",
+               {"env_id": cfg.env_id, "task": cfg.task, "deterministic": True, "episodes": 20, **report})
     print(f"wrote {ckpt}; deterministic return over 20 episodes: "
           + "; ".join(f"{s} setting {r['return']:.1f} ± {r['return_std']:.1f} ({r['length']:.0f} steps, "
                       f"moved {r['displacement']:+.2f} m)" for s, r in report.items()))
@@ -186,19 +267,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
     policy = TrainedPolicy.load(args.checkpoint)
-    if policy.env.get("id") == "Hopper-v5":
-        return _evaluate_hopper(policy, args)
+    if policy.env.get("id") != "pomil/Circles-v0":
+        return _evaluate_tasks(policy, args)
     metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, args.deterministic, args.none_threshold)
     print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
     return 0
 
 
-def _evaluate_hopper(policy, args: argparse.Namespace) -> int:
+def _evaluate_tasks(policy, args: argparse.Namespace) -> int:
     from pomil.data import Demonstrations
     from pomil.eval.locomotion import evaluate_tasks, reference_of
 
     if not args.demos:
-        raise PomilError("evaluate: a Hopper policy needs --demos (the demonstrations whose expert returns normalise the scores)")
+        raise PomilError(f"evaluate: a {policy.env.get('id')} policy needs --demos (the demonstrations whose "
+                         "expert returns normalise the scores)")
     reference = reference_of(Demonstrations.load(args.demos).metadata, args.demos)
     m = evaluate_tasks(policy, reference, args.episodes_per_code, args.seed, deterministic=not args.stochastic)
     if args.json:
@@ -249,6 +331,14 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from pomil.sweep import SweepConfig, sweep
+
+    cfg: SweepConfig = config_from_args(SweepConfig, args)
+    data = sweep(cfg, args.sweep_config, args.grid or [])
+    return 1 if data["failed"] else 0
+
+
 # -------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pomil", description="Multi-modal imitation learning in partially observable environments.")
@@ -262,15 +352,36 @@ def build_parser() -> argparse.ArgumentParser:
     dh = demos_sub.add_parser("hopper", help="Hopper forward + backward experts, equal numbers per task, positions-only view")
     add_config_flags(dh, HopperDemosConfig)
     dh.set_defaults(func=cmd_demos_hopper)
+    dr = demos_sub.add_parser("record", help="one expert checkpoint on its own environment (any task), one label")
+    add_config_flags(dr, RecordDemosConfig)
+    dr.set_defaults(func=cmd_demos_record)
+    di = demos_sub.add_parser("import-minari", help="a local Minari dataset as pomil demonstrations (needs the minari extra)")
+    di.add_argument("dataset_id", help="Minari dataset id, e.g. pomil/hopper-paper-v0")
+    di.add_argument("--out", required=True, help="output .npz file (written atomically)")
+    di.add_argument("--observation-mask", default="",
+                    help="what the learner observes, for datasets not written by pomil: positions-only or indices (default: all)")
+    di.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
+    di.set_defaults(func=cmd_demos_minari)
+    de = demos_sub.add_parser("export-minari", help="pomil demonstrations as a local Minari dataset (needs the minari extra)")
+    de.add_argument("demos", help="demonstrations .npz")
+    de.add_argument("--dataset-id", required=True, help="Minari dataset id to create, [namespace/]name-vN")
+    de.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
+    de.set_defaults(func=cmd_demos_minari)
+    dm = demos_sub.add_parser("merge", help="several recordings (experts / tasks) into one unlabeled training set")
+    dm.add_argument("files", nargs="+", help="demonstrations .npz files to merge")
+    add_config_flags(dm, MergeDemosConfig)
+    dm.set_defaults(func=cmd_demos_merge)
 
     from pomil.algos.expert import ExpertConfig
 
-    ex = sub.add_parser("experts", help="train a PPO expert on the full observation")
+    ex = sub.add_parser("experts", help="train a PPO expert (MLP policy, pomil's PPO) on a task's reward")
     ex_sub = ex.add_subparsers(dest="env", required=True, metavar="ENV")
-    eh = ex_sub.add_parser("hopper", help="Hopper-v5 forward or backward (MLP policy, pomil's PPO)")
-    add_config_flags(eh, ExpertConfig, fixed={"demos": ""})
-    eh.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    eh.set_defaults(func=cmd_experts)
+    for name, fixed, text in (("hopper", {"demos": "", "env_id": "Hopper-v5"}, "Hopper-v5 forward or backward"),
+                              ("train", {"demos": ""}, "any Gymnasium id (--env-id) with 1-D Box spaces")):
+        eh = ex_sub.add_parser(name, help=text)
+        add_config_flags(eh, ExpertConfig, fixed=fixed)
+        eh.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+        eh.set_defaults(func=cmd_experts)
 
     train = sub.add_parser("train", help="train a learner on demonstrations")
     train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
@@ -283,15 +394,16 @@ def build_parser() -> argparse.ArgumentParser:
         tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         tp.set_defaults(func=cmd_train)
 
-    ev = sub.add_parser("evaluate", help="roll a checkpoint out: mode metrics (circles) or per-task scores (Hopper)")
+    ev = sub.add_parser("evaluate", help="roll a checkpoint out: mode metrics (circles) or per-task scores (other tasks)")
     ev.add_argument("checkpoint", help="checkpoint.pt (or its run directory)")
     ev.add_argument("--episodes-per-code", type=int, default=100, help="rollouts per latent code (default: 100)")
     ev.add_argument("--seed", type=int, default=0, help="rollout seed (default: 0)")
     ev.add_argument("--deterministic", action="store_true", help="act with the policy mean instead of sampling")
     ev.add_argument("--none-threshold", type=float, default=1.0,
                     help="mean distance to every circle above which a trajectory is in no mode (default: 1.0)")
-    ev.add_argument("--demos", help="Hopper: demonstrations .npz whose metadata hold the expert and zero-action returns")
-    ev.add_argument("--stochastic", action="store_true", help="Hopper: sample actions (default there: the policy mean)")
+    ev.add_argument("--demos", help="tasks (Hopper, any recorded task): demonstrations .npz whose metadata hold the "
+                                    "expert and zero-action returns")
+    ev.add_argument("--stochastic", action="store_true", help="tasks: sample actions (default there: the policy mean)")
     ev.add_argument("--json", action="store_true", help="print machine-readable JSON")
     ev.set_defaults(func=cmd_evaluate)
 
@@ -303,6 +415,15 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--seed", type=int, default=0, help="rollout seed (default: 0)")
     pl.add_argument("--deterministic", action="store_true", help="act with the policy mean")
     pl.set_defaults(func=cmd_plot)
+
+    from pomil.sweep import SweepConfig
+
+    sw = sub.add_parser("sweep", help="one training config over seeds and a grid of settings, in parallel on Ray")
+    sw.add_argument("sweep_config", metavar="CONFIG", help='JSON object: "learner" and its config keys ("demos" at least)')
+    sw.add_argument("--grid", action="append", metavar="KEY=V1,V2",
+                    help="a config key and its values; repeat for more keys (their product is swept)")
+    add_config_flags(sw, SweepConfig)
+    sw.set_defaults(func=cmd_sweep)
 
     from pomil.reproduce import CirclesReproConfig, HopperReproConfig
 

@@ -50,6 +50,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         return value
     if origin is tuple:
         inner = get_args(tp)[0]
+        if isinstance(value, dict):  # JSON object for a key=value list (env_kwargs)
+            value = [f"{k}={json.dumps(v)}" for k, v in value.items()]
         if isinstance(value, str):
             value = [v for v in value.split(",") if v.strip()]
         return tuple(_coerce(v, inner, key) for v in value)
@@ -111,6 +113,22 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
 def to_dict(config: Any) -> dict[str, Any]:
     """Plain JSON-able dict of a config dataclass (tuples become lists)."""
     return json.loads(json.dumps(dataclasses.asdict(config)))
+
+
+def parse_kwargs(entries: tuple[str, ...] | list[str], name: str = "env_kwargs") -> dict[str, Any]:
+    """``("forward_reward_weight=-1", "max_episode_steps=128")`` -> dict; values
+    are read as JSON (numbers, true/false, null, lists), else kept as strings."""
+    out: dict[str, Any] = {}
+    for entry in entries:
+        key, sep, raw = str(entry).partition("=")
+        key = key.strip()
+        if not sep or not key.isidentifier():
+            raise PomilError(f"config key '{name}': expected key=value entries, got {entry!r}")
+        try:
+            out[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key] = raw.strip()
+    return out
 
 
 def check_positive(config: Any, *names: str) -> None:

@@ -7,7 +7,7 @@ import torch
 
 from pomil.data import Demonstrations
 from pomil.envs.circles import CircleExperts, CirclesSpec, CirclesVecEnv, ENV_ID, DEFAULT_EXPERT_NOISE
-from pomil.envs.locomotion import TASKS, HopperSim
+from pomil.envs.locomotion import HOPPER_ID
 from pomil.errors import PomilError
 
 
@@ -58,80 +58,210 @@ def record_circles_demos(
     )
 
 
-def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", seed: int = 0,
-                        observation_mask: str | list[int] = "positions-only", reference_episodes: int = 100) -> Demonstrations:
-    """Equal numbers of episodes from each task's expert (checkpoint paths by task
-    name), shuffled; the experts act deterministically on the full observation.
+def record_expert_demos(expert_path: str, episodes: int, task: str | None = None,
+                        observation_mask: str | list[int] | None = "positions-only", seed: int = 0,
+                        reset_seed: int | None = None, reference_episodes: int = 100) -> Demonstrations:
+    """``episodes`` deterministic episodes of one expert checkpoint on its own
+    environment (id and keywords from the checkpoint), labelled ``task``.
 
-    Observations are what the learner sees (``observation_mask``); ``states``
-    keep the full observation and ``labels`` the task, for evaluation only.  The
-    metadata carry each task's environment keywords and the evaluation
-    reference: expert return and displacement (over the recorded episodes) and
-    the return of zero actions (over ``reference_episodes`` episodes).
+    Observations are what the learner sees (``observation_mask``: a preset, a
+    list of indices, or None for everything); ``states`` keep the full
+    observation, for evaluation only.  The metadata carry the task's
+    evaluation reference: its environment keywords, the expert's mean return
+    and displacement, and the mean return of zero actions.  ``reset_seed``
+    (default ``seed``) seeds the environments' reset noise, ``seed`` the expert.
     """
     from pomil.api import TrainedPolicy
-    from pomil.envs.locomotion import HOPPER_ID, hopper_kwargs
+
+    expert = TrainedPolicy.load(expert_path)
+    if expert.env.get("id") == ENV_ID:
+        raise PomilError(f"{expert_path}: circle policies are recorded with `pomil demos circles`")
+    return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes,
+                          task or _task_name(expert.env.get("kwargs") or {}), observation_mask, seed,
+                          seed if reset_seed is None else reset_seed, reference_episodes)
+
+
+def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: str, observation_mask,
+                   seed: int, reset_seed: int, reference_episodes: int) -> Demonstrations:
+    from pomil.envs import make_vec_env
     from pomil.envs.wrappers import resolve_observation_mask
 
-    if episodes_per_task < 1:
-        raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
-    tasks = list(experts)
-    kwargs = {t: hopper_kwargs(t, setting) for t in tasks}
-    mask = resolve_observation_mask(HOPPER_ID, kwargs[tasks[0]], observation_mask)
-    states_all, acts_all, labels, lengths = [], [], [], []
-    ref: dict[str, dict[str, float]] = {"expert_returns": {}, "expert_displacement": {}, "still_returns": {}}
-    for j, task in enumerate(tasks):
-        expert = TrainedPolicy.load(experts[task])
-        if expert.obs_dim != 11:
-            raise PomilError(f"{experts[task]}: expected a Hopper expert on the full 11-number observation, got obs_dim {expert.obs_dim}")
-        sim = HopperSim(episodes_per_task, kwargs[task])
-        full = sim.reset(seed + 1000 * j)
-        x0 = sim.x_position
-        expert.reset(episodes_per_task, seed=seed)
-        rec_obs, rec_act, ret, length = [], [], np.zeros(episodes_per_task), np.zeros(episodes_per_task, dtype=np.int64)
-        while not sim.done.all():
-            alive = ~sim.done
-            act = expert.act(full.astype(np.float32), deterministic=True)
-            rec_obs.append(full.copy())
-            rec_act.append(act)
-            full, r, _, _ = sim.step(act.astype(np.float64))
-            ret += r
-            length += alive
-        sim.close()
-        ref["expert_returns"][task] = float(ret.mean())
-        ref["expert_displacement"][task] = float(np.sign(TASKS[task]) * (sim.x_position - x0).mean())
-        ref["still_returns"][task] = _zero_action_return(kwargs[task], reference_episodes, seed)
-        obs_t, act_t = np.stack(rec_obs, 1), np.stack(rec_act, 1)  # (E, T, d)
-        for e in range(episodes_per_task):
-            states_all.append(obs_t[e, :length[e]])
-            acts_all.append(act_t[e, :length[e]])
-            labels.append(j)
-            lengths.append(int(length[e]))
-    order = np.random.default_rng(seed).permutation(len(labels))
-    states = [states_all[i] for i in order]
-    bounds = np.concatenate([[0], np.cumsum([lengths[i] for i in order])])
-    full_obs = np.concatenate(states).astype(np.float32)
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    env_id = expert.env["id"]
+    mask = resolve_observation_mask(env_id, kwargs, observation_mask)
+    expert_mask = expert.env.get("observation_mask")
+    sim = make_vec_env(env_id, kwargs, episodes, "cpu").sim
+    full = sim.reset(reset_seed)
+    x0 = _x_position(sim)
+    expert.reset(episodes, seed=seed)
+    rec_obs, rec_act, ret, length = [], [], np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
+    while not sim.done.all():
+        alive = ~sim.done
+        seen = full if expert_mask is None else full[:, expert_mask]
+        act = expert.act(seen.astype(np.float32), deterministic=True)
+        rec_obs.append(full.copy())
+        rec_act.append(act)
+        full, r, _, _ = sim.step(act.astype(np.float64))
+        ret += r
+        length += alive
+    displacement = _x_position(sim) - x0
+    sim.close()
+    obs_t, act_t = np.stack(rec_obs, 1), np.stack(rec_act, 1)  # (E, T, d)
+    full_obs = np.concatenate([obs_t[e, :length[e]] for e in range(episodes)]).astype(np.float32)
+    direction = float(np.sign(kwargs.get("forward_reward_weight", 1.0)))
     return Demonstrations(
-        observations=full_obs[:, mask],
-        actions=np.concatenate([acts_all[i] for i in order]).astype(np.float32),
-        episode_bounds=bounds.astype(np.int64),
-        labels=np.asarray(labels, dtype=np.int64)[order],
+        observations=full_obs if mask is None else full_obs[:, mask],
+        actions=np.concatenate([act_t[e, :length[e]] for e in range(episodes)]).astype(np.float32),
+        episode_bounds=np.concatenate([[0], np.cumsum(length)]).astype(np.int64),
+        labels=np.zeros(episodes, dtype=np.int64),
         states=full_obs,
         metadata={
-            "env_id": HOPPER_ID,
-            "env_kwargs": kwargs[tasks[0]],
+            "env_id": env_id,
+            "env_kwargs": kwargs,
             "observation_mask": mask,
-            "setting": setting,
-            "source": f"pomil PPO experts {experts}, deterministic, seed={seed}",
-            "label_names": tasks,
-            "tasks": kwargs,
-            **ref,
+            "source": f"pomil expert {expert_path}, deterministic, seed={seed}",
+            "label_names": [task],
+            "tasks": {task: kwargs},
+            "expert_returns": {task: float(ret.mean())},
+            "expert_displacement": {task: float(direction * displacement.mean())},
+            "still_returns": {task: _zero_action_return(env_id, kwargs, reference_episodes, seed)},
         },
     )
 
 
-def _zero_action_return(env_kwargs: dict, episodes: int, seed: int) -> float:
-    sim = HopperSim(episodes, env_kwargs)
+def _task_name(kwargs: dict) -> str:
+    w = kwargs.get("forward_reward_weight")
+    return "task" if w is None or w == 0 else ("forward" if w > 0 else "backward")
+
+
+def _x_position(sim) -> np.ndarray:
+    try:
+        return sim.x_position
+    except AttributeError:  # not MuJoCo: no displacement
+        return np.full(sim.num_envs, np.nan)
+
+
+def _is_reward_term(key: str) -> bool:
+    """Constructor keywords that change the reward only (gymnasium's MuJoCo naming)."""
+    return key.endswith(("_weight", "_reward"))
+
+
+def merge_demos(sources: list[Demonstrations], proportions: list[float] | None = None, episodes: int | None = None,
+                seed: int = 0, names: list[str] | None = None) -> Demonstrations:
+    """One unlabeled training set from recordings of several experts / tasks.
+
+    Episodes are taken from the sources in ``proportions`` (default: equal) --
+    as many as the sources allow, or ``episodes`` in total -- and shuffled.
+    Labels (evaluation only) follow the sources' label names, so the same task
+    in two files keeps one label.  The sources must share environment id,
+    observation mask and sizes, and their environment keywords may differ
+    only in reward terms (``*_weight``, ``*_reward``): the learner trains in
+    the first source's environment, whose dynamics they all share.
+    """
+    if not sources:
+        raise ValueError("merge needs at least one demonstrations file")
+    names = names or [f"source {i}" for i in range(len(sources))]
+    p = np.ones(len(sources)) if proportions is None else np.asarray(proportions, dtype=np.float64)
+    if p.shape != (len(sources),) or np.any(~np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
+        raise ValueError(f"proportions: expected {len(sources)} non-negative numbers (one per file), got {proportions}")
+    p = p / p.sum()
+    first = sources[0].metadata
+    for name, d in zip(names, sources):
+        md = d.metadata
+        for key in ("env_id", "observation_mask"):
+            if md.get(key) != first.get(key):
+                raise ValueError(f"{name}: metadata.{key} is {md.get(key)!r}, expected {first.get(key)!r} as in {names[0]}")
+        if (d.obs_dim, d.act_dim) != (sources[0].obs_dim, sources[0].act_dim):
+            raise ValueError(f"{name}: obs/act dims {(d.obs_dim, d.act_dim)} differ from {names[0]}'s {(sources[0].obs_dim, sources[0].act_dim)}")
+        a, b = md.get("env_kwargs") or {}, first.get("env_kwargs") or {}
+        differ = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k) and not _is_reward_term(k))
+        if differ:
+            raise ValueError(f"{name}: metadata.env_kwargs differ from {names[0]}'s in {differ}; only reward terms may differ")
+        if (d.states is None) != (sources[0].states is None):
+            raise ValueError(f"{name}: some files have full states and some not")
+    available = np.array([d.num_episodes for d in sources])
+    total = int(np.floor(min(available[p > 0] / p[p > 0]))) if episodes is None else int(episodes)
+    take = np.floor(p * total + 1e-9).astype(np.int64)
+    if np.any(take > available):
+        i = int(np.argmax(take - available))
+        raise ValueError(f"{names[i]}: {take[i]} episodes requested, it has {available[i]}")
+    if take.sum() < 1:
+        raise ValueError("the merge would hold no episodes")
+    rng = np.random.default_rng(seed)
+    label_names: list[str] = []
+    merged_md: dict[str, dict] = {"tasks": {}, "expert_returns": {}, "expert_displacement": {}, "still_returns": {}}
+    weight: dict[str, int] = {}
+    pieces_obs, pieces_act, pieces_states, lengths, labels = [], [], [], [], []
+    for d, n, name in zip(sources, take, names):
+        if n == 0:
+            continue
+        # all episodes in order when a source is used whole, else a random subset
+        chosen = np.arange(d.num_episodes) if n == d.num_episodes else np.sort(rng.choice(d.num_episodes, n, replace=False))
+        own = d.metadata.get("label_names") or []
+        src_labels = d.labels if d.labels is not None else np.zeros(d.num_episodes, dtype=np.int64)
+        for e in chosen:
+            lo, hi = d.episode_bounds[e], d.episode_bounds[e + 1]
+            lab = int(src_labels[e])
+            lname = own[lab] if lab < len(own) else f"{name} label {lab}"
+            if lname not in label_names:
+                label_names.append(lname)
+            labels.append(label_names.index(lname))
+            pieces_obs.append(d.observations[lo:hi])
+            pieces_act.append(d.actions[lo:hi])
+            if d.states is not None:
+                pieces_states.append(d.states[lo:hi])
+            lengths.append(int(hi - lo))
+        for key, table in merged_md.items():
+            for task, value in (d.metadata.get(key) or {}).items():
+                if key == "tasks":
+                    if task in table and table[task] != value:
+                        raise ValueError(f"{name}: task {task!r} has environment keywords {value}, another file {table[task]}")
+                    table[task] = value
+                else:  # episode-weighted mean over the files that hold the task
+                    w = weight.get(f"{key}/{task}", 0)
+                    table[task] = (table.get(task, 0.0) * w + float(value) * int(n)) / (w + int(n))
+                    weight[f"{key}/{task}"] = w + int(n)
+    order = rng.permutation(len(lengths))
+    bounds = np.concatenate([[0], np.cumsum([lengths[i] for i in order])])
+    metadata = {**first, **{k: v for k, v in merged_md.items() if v},
+                "label_names": label_names,
+                "source": "merge of " + "; ".join(f"{n} episodes of {name}" for name, n in zip(names, take)),
+                "merged_from": [{"file": name, "episodes": int(n), "source": d.metadata.get("source")} for d, n, name in zip(sources, take, names)]}
+    return Demonstrations(
+        observations=np.concatenate([pieces_obs[i] for i in order]),
+        actions=np.concatenate([pieces_act[i] for i in order]),
+        episode_bounds=bounds.astype(np.int64),
+        labels=np.asarray(labels, dtype=np.int64)[order],
+        states=np.concatenate([pieces_states[i] for i in order]) if pieces_states else None,
+        metadata=metadata,
+    )
+
+
+def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", seed: int = 0,
+                        observation_mask: str | list[int] = "positions-only", reference_episodes: int = 100) -> Demonstrations:
+    """Equal numbers of episodes from each Hopper task's expert (checkpoint paths
+    by task name), shuffled: :func:`record_expert_demos` in the task's
+    ``setting`` for each, then :func:`merge_demos`."""
+    from pomil.api import TrainedPolicy
+    from pomil.envs.locomotion import hopper_kwargs
+
+    recordings = []
+    for j, (task, path) in enumerate(experts.items()):
+        expert = TrainedPolicy.load(path)
+        if expert.obs_dim != 11 or expert.env.get("id") != HOPPER_ID:
+            raise PomilError(f"{path}: expected a Hopper expert on the full 11-number observation, got obs_dim {expert.obs_dim}")
+        recordings.append(_record_policy(expert, path, hopper_kwargs(task, setting), episodes_per_task, task,
+                                         observation_mask, seed, seed + 1000 * j, reference_episodes))
+    demos = merge_demos(recordings, seed=seed, names=list(experts.values()))
+    return Demonstrations(demos.observations, demos.actions, demos.episode_bounds, demos.labels, demos.states,
+                          {**demos.metadata, "setting": setting})
+
+
+def _zero_action_return(env_id: str, env_kwargs: dict, episodes: int, seed: int) -> float:
+    from pomil.envs import make_vec_env
+
+    sim = make_vec_env(env_id, env_kwargs, episodes, "cpu").sim
     sim.reset(seed)
     ret = np.zeros(episodes)
     while not sim.done.all():

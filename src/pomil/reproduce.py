@@ -295,6 +295,12 @@ def _curve(run_dir: Path, tasks: list[str]) -> dict[str, list[float]]:
     return curve
 
 
+def task_summary(runs: list[dict[str, Any]], tasks: list[str]) -> dict[str, dict[str, list[float]]]:
+    """[mean, std] over seeds of each task's three figures."""
+    return {t: {m: [float(np.mean([r["tasks"][t][m] for r in runs])), float(np.std([r["tasks"][t][m] for r in runs]))]
+                for m in METRICS} for t in tasks}
+
+
 def hopper_table(results: dict[str, Any]) -> str:
     tasks = results["tasks"]
     head = "| learner | " + " | ".join(f"{t}: norm. return | {t}: progress | {t}: displacement" for t in tasks) + " | wall s / seed |"
@@ -346,9 +352,7 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
                 f"{t} (code {metrics['tasks'][t]['code']}): norm {metrics['tasks'][t]['normalised_return']:.2f}, "
                 f"progress {metrics['tasks'][t]['progress']:.2f}, displacement {metrics['tasks'][t]['displacement_ratio']:.2f}"
                 for t in tasks) + f" ({walls[-1]:.0f} s)", flush=True)
-        summary = {t: {m: [float(np.mean([r["tasks"][t][m] for r in runs])), float(np.std([r["tasks"][t][m] for r in runs]))]
-                       for m in METRICS} for t in tasks}
-        results["learners"][name] = {"runs": runs, "summary": summary, "wall_s": walls, "curves": curves}
+        results["learners"][name] = {"runs": runs, "summary": task_summary(runs, tasks), "wall_s": walls, "curves": curves}
     results["wall_time_s"] = time.perf_counter() - t_start
     write_json(out / "metrics.json", results)
     table = hopper_table(results)

@@ -44,7 +44,10 @@ def resolve_device(name: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise PomilError(f"device '{name}' requested but CUDA is not available; use --device cpu")
-    return torch.device(name)
+    device = torch.device(name)
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise PomilError(f"device '{name}' requested but this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
 
 
 # ----------------------------------------------------------------- checkpoints

@@ -72,7 +72,7 @@ class AdversarialConfig(RunConfig):
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)")
     num_envs: int = option(64, "episodes collected per iteration")
-    num_codes: int = option(-1, "latent codes K; -1 = number of modes in the demonstrations (ignored by gail)")
+    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)")
     hidden_size: int = option(128, "dense width and GRU cells of every network")
     lr: float = option(2e-4, "policy learning rate (Adam)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)")
@@ -114,6 +114,8 @@ class AdversarialConfig(RunConfig):
             raise ValueError(f"bc_init_iterations must be >= 0, got {self.bc_init_iterations}")
         if self.gradient_penalty < 0 or self.weight_clip < 0:
             raise ValueError("gradient_penalty and weight_clip must be >= 0")
+        if self.num_codes in (0, 1) or self.num_codes < -1:
+            raise ValueError(f"num_codes must be -1 (from the demonstrations) or >= 2, got {self.num_codes}")
 
 
 @dataclass
@@ -251,8 +253,8 @@ def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
     circles = (demos.metadata.get("env_kwargs") or {}).get("circles")
     if circles:
         return len(circles)
-    if demos.labels is not None:
-        return int(len(set(demos.labels.tolist())))
+    if demos.labels is not None:  # at least 2: a single code carries no information
+        return max(2, int(len(set(demos.labels.tolist()))))
     return 2
 
 

@@ -1,6 +1,8 @@
-"""PPO experts: an MLP policy on the full observation, trained on the task reward.
+"""PPO experts: an MLP policy trained on a task's reward, for any Gymnasium
+environment with 1-D Box spaces (Hopper-v5 on its fast batched simulator).
 
-The experts whose demonstrations the imitation learners see.  One readable
+The experts whose demonstrations the imitation learners see; by default they
+observe everything (``observation_mask`` restricts that).  One readable
 loop: collect one episode in each of ``num_envs`` batched copies, GAE,
 ``epochs`` passes of shuffled single-step minibatches through the clipped
 PPO loss.  Observations are normalised by running statistics (kept in the
@@ -19,9 +21,11 @@ from typing import Literal
 
 import torch
 
-from pomil.config import RunConfig, check_positive, option, to_dict
+from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
 from pomil.envs import executed_actions_fn, make_vec_env
-from pomil.envs.locomotion import HOPPER_ID, hopper_kwargs
+from pomil.envs.locomotion import HOPPER_ID, locomotion_kwargs
+from pomil.envs.wrappers import parse_mask, resolve_observation_mask
+from pomil.errors import PomilError
 from pomil.nn import heads
 from pomil.nn.normalize import RunningNorm
 from pomil.nn.policy import GaussianPolicy, PolicyArch
@@ -33,8 +37,14 @@ from pomil.training import RunLogger, resolve_device, resume_run, rng_state, sav
 
 @dataclass(frozen=True)
 class ExpertConfig(RunConfig):
-    task: Literal["forward", "backward"] = option("forward", "Hopper task: forward_reward_weight +1 or -1")
-    setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    env_id: str = option(HOPPER_ID, "Gymnasium environment id (1-D Box observation and action spaces)")
+    task: Literal["forward", "backward", "none"] = option(
+        "forward", "locomotion task: forward_reward_weight +1 or -1; none: the environment's own reward")
+    setting: Literal["paper", "standard"] = option(
+        "paper", "paper: 128-step episodes that do not end when unhealthy; standard: the environment's own episodes")
+    env_kwargs: tuple[str, ...] = option((), "more constructor keywords as key=value (JSON values), applied after task "
+                                             "and setting, e.g. ctrl_cost_weight=0.05,max_episode_steps=200")
+    observation_mask: str = option("", "what the expert observes: '' (everything), positions-only, or comma-separated indices")
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)")
     num_envs: int = option(64, "environment copies stepped together")
@@ -58,9 +68,10 @@ class ExpertConfig(RunConfig):
         if self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
 
-    @property
-    def env_kwargs(self) -> dict:
-        return hopper_kwargs(self.task, self.setting)
+    def env_settings(self) -> tuple[dict, list[int] | None]:
+        """(constructor keywords, observation indices or None); ValueError when the env rejects them."""
+        kwargs = {**locomotion_kwargs(self.env_id, self.task, self.setting), **parse_kwargs(self.env_kwargs)}
+        return kwargs, resolve_observation_mask(self.env_id, kwargs, parse_mask(self.observation_mask))
 
 
 class _NormalizedObs:
@@ -96,12 +107,17 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
     run_dir = Path(cfg.out)
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(cfg.device)
-    env_kwargs = cfg.env_kwargs
-    raw_env = make_vec_env(HOPPER_ID, env_kwargs, cfg.num_envs, device, seed=cfg.seed)
+    try:
+        env_kwargs, mask = cfg.env_settings()
+        raw_env = make_vec_env(cfg.env_id, env_kwargs, cfg.num_envs, device, mask, seed=cfg.seed)
+    except PomilError:
+        raise
+    except Exception as err:  # unknown id, rejected keywords: gymnasium raises several types
+        raise PomilError(f"experts: cannot build {cfg.env_id!r} ({str(err).splitlines()[0][:200]})") from None
     obs_norm = RunningNorm(raw_env.obs_dim).to(device)
     env = _NormalizedObs(raw_env, obs_norm)
     reward_norm = RunningNorm(1).to(device)
-    execute = executed_actions_fn(HOPPER_ID, env_kwargs)
+    execute = executed_actions_fn(cfg.env_id, env_kwargs)
     gen = seed_everything(cfg.seed)
     arch = PolicyArch(raw_env.obs_dim, raw_env.act_dim, "mlp", cfg.hidden_size, 0, cfg.log_std_init)
     policy = GaussianPolicy(arch).to(device)
@@ -111,9 +127,9 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
     nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
     start = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else 0
     write_json(run_dir / "config.json", {"algo": "expert", **to_dict(cfg)})
-    logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.task}",
+    logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.env_id} {cfg.task}",
                        key_stats=("env/return", "ppo/approx_kl"))
-    env_info = {"id": HOPPER_ID, "kwargs": env_kwargs, "observation_mask": None}
+    env_info = {"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}
 
     def checkpoint(iteration: int) -> None:
         logger.flush()

@@ -1,4 +1,5 @@
-"""Environments: the 2-D circles POMDP and batched MuJoCo Hopper."""
+"""Environments: the 2-D circles POMDP, batched MuJoCo Hopper, and any Gymnasium
+environment with 1-D Box spaces (:class:`pomil.envs.batch.GymSim`)."""
 
 from __future__ import annotations
 
@@ -27,9 +28,11 @@ def env_dims(env_id: str, env_kwargs: dict[str, Any], observation_mask: Sequence
         spec = CirclesSpec.from_dict(env_kwargs)
         obs_dim, act_dim = spec.obs_dim, spec.act_dim
     else:
+        from pomil.envs.batch import check_box_spaces
+
         env = gym.make(env_id, **env_kwargs)
         try:
-            obs_dim, act_dim = int(env.observation_space.shape[0]), int(env.action_space.shape[0])
+            obs_dim, act_dim = check_box_spaces(env, env_id)
         finally:
             env.close()
     if observation_mask is not None:
@@ -44,7 +47,9 @@ def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device:
     """The batched (torch) environment training uses for ``env_id``.
 
     ``reset() -> obs (N, d)``; ``step(actions) -> (obs, reward, terminated,
-    truncated)``; one episode per copy between resets.
+    truncated)``; one episode per copy between resets.  Circles and Hopper-v5
+    have their own batched simulators; every other id runs N gymnasium copies
+    (:class:`pomil.envs.batch.GymSim`).
     """
     if env_id == CIRCLES_ID:
         from pomil.envs.circles import CirclesSpec, CirclesVecEnv
@@ -52,11 +57,13 @@ def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device:
         if observation_mask is not None:
             raise ValueError("the circles environment takes no observation mask (it observes positions only)")
         return CirclesVecEnv(CirclesSpec.from_dict(env_kwargs), num_envs, device)
-    if env_id == HOPPER_ID:
-        from pomil.envs.locomotion import HopperSim, TorchVecEnv
+    from pomil.envs.locomotion import HopperSim, TorchVecEnv
 
+    if env_id == HOPPER_ID:
         return TorchVecEnv(HopperSim(num_envs, env_kwargs), observation_mask, device, seed)
-    raise ValueError(f"no batched environment for {env_id!r} yet (supported: {CIRCLES_ID}, {HOPPER_ID})")
+    from pomil.envs.batch import GymSim
+
+    return TorchVecEnv(GymSim(env_id, num_envs, env_kwargs), observation_mask, device, seed)
 
 
 def executed_actions_fn(env_id: str, env_kwargs: dict[str, Any]) -> Callable[[torch.Tensor], torch.Tensor]:

@@ -63,6 +63,43 @@ def hopper_kwargs(task: str, setting: str) -> dict[str, Any]:
     return {"forward_reward_weight": TASKS[task], "ctrl_cost_weight": 1e-3, **SETTINGS[setting]}
 
 
+def locomotion_kwargs(env_id: str, task: str, setting: str) -> dict[str, Any]:
+    """Constructor keywords of a locomotion task in a setting, for any MuJoCo
+    locomotion id (Hopper, Walker2d, HalfCheetah, Ant, ...).
+
+    task: ``forward`` / ``backward`` (forward_reward_weight +1 / -1) or ``none``
+    (the environment's own reward).  setting: ``paper`` (128-step episodes
+    that do not end when unhealthy) or ``standard`` (the environment's own).
+    Hopper-v5 gets the paper's exact keywords (:func:`hopper_kwargs`).
+    """
+    if env_id == HOPPER_ID and task != "none":
+        return hopper_kwargs(task, setting)
+    import inspect
+
+    import gymnasium as gym
+
+    if setting not in SETTINGS:
+        raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(SETTINGS)}")
+    if task not in (*TASKS, "none"):
+        raise ValueError(f"unknown task {task!r}; expected one of {[*TASKS, 'none']}")
+    entry = gym.spec(env_id).entry_point
+    if isinstance(entry, str):
+        module, _, name = entry.partition(":")
+        entry = getattr(__import__(module, fromlist=[name]), name)
+    accepted = set(inspect.signature(entry).parameters)
+    kw: dict[str, Any] = {}
+    if task != "none":
+        if "forward_reward_weight" not in accepted:
+            raise ValueError(f"task {task!r} needs an environment with a forward_reward_weight keyword; "
+                             f"{env_id} has none (use task 'none')")
+        kw["forward_reward_weight"] = TASKS[task]
+    if setting == "paper":
+        kw["max_episode_steps"] = SETTINGS["paper"]["max_episode_steps"]
+        if "terminate_when_unhealthy" in accepted:
+            kw["terminate_when_unhealthy"] = False
+    return kw
+
+
 def _model_path() -> str:
     import gymnasium.envs.mujoco as gm
 
@@ -190,7 +227,8 @@ class HopperSim:
 
 
 class TorchVecEnv:
-    """Torch face of a NumPy batched simulator, with an optional observation mask.
+    """Torch face of a NumPy batched simulator (:class:`HopperSim`,
+    :class:`pomil.envs.batch.GymSim`), with an optional observation mask.
 
     ``reset() -> obs (N, d)``; ``step(actions) -> (obs, reward, terminated,
     truncated)`` as float32 / bool tensors on ``device``; ``observation_mask``
@@ -198,7 +236,7 @@ class TorchVecEnv:
     partial view).  ``full_observation`` is the last unmasked observation.
     """
 
-    def __init__(self, sim: HopperSim, observation_mask: list[int] | None = None, device: Any = "cpu", seed: int | None = None) -> None:
+    def __init__(self, sim: Any, observation_mask: list[int] | None = None, device: Any = "cpu", seed: int | None = None) -> None:
         self.sim = sim
         self.num_envs = sim.num_envs
         self.device = torch.device(device)

@@ -43,6 +43,19 @@ class ObservationMask(gym.ObservationWrapper):
         return observation[self.indices]
 
 
+def parse_mask(text: str) -> str | list[int] | None:
+    """A mask as the user writes it: '' (observe everything), a preset name, or '0,1,2'."""
+    text = text.strip()
+    if not text:
+        return None
+    if text in PRESETS:
+        return text
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"observation mask: expected one of {list(PRESETS)} or comma-separated integers, got {text!r}") from None
+
+
 def check_indices(indices: Sequence[int], obs_dim: int) -> np.ndarray:
     idx = np.asarray(list(indices))
     if idx.ndim != 1 or len(idx) == 0 or not np.issubdtype(idx.dtype, np.integer):

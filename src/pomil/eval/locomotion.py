@@ -25,20 +25,28 @@ import torch
 
 from pomil.api import TrainedPolicy
 from pomil.envs import make_vec_env
-from pomil.envs.locomotion import HOPPER_ID
 from pomil.errors import PomilError
 
 
 @torch.no_grad()
 def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episodes: int, seed: int = 0,
                        deterministic: bool = True, codes: np.ndarray | None = None,
-                       observation_mask: list[int] | None = None) -> dict[str, np.ndarray]:
-    """One episode in each of ``episodes`` Hopper copies; per episode: ``returns``,
-    ``displacement`` (final minus initial torso x) and ``length`` (steps)."""
-    env = make_vec_env(HOPPER_ID, env_kwargs, episodes, "cpu", observation_mask, seed=seed)
+                       observation_mask: list[int] | None = None, env_id: str | None = None) -> dict[str, np.ndarray]:
+    """One episode in each of ``episodes`` copies of the policy's environment
+    (or ``env_id``) built with ``env_kwargs``; per episode: ``returns``,
+    ``displacement`` (final minus initial torso x; NaN off MuJoCo) and
+    ``length`` (steps)."""
+    env = make_vec_env(env_id or policy.env["id"], env_kwargs, episodes, "cpu", observation_mask, seed=seed)
+
+    def x_position() -> np.ndarray:
+        try:
+            return env.sim.x_position
+        except AttributeError:
+            return np.full(episodes, np.nan)
+
     try:
         obs = env.reset()
-        x0 = env.sim.x_position
+        x0 = x_position()
         policy.reset(episodes, codes if policy.num_codes else None, seed=seed)
         ret = np.zeros(episodes)
         length = np.zeros(episodes, dtype=np.int64)
@@ -47,7 +55,7 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
             obs, r, _, _ = env.step(torch.as_tensor(policy.act(obs, deterministic)))
             ret += r.numpy()
             length += alive
-        return {"returns": ret, "displacement": env.sim.x_position - x0, "length": length}
+        return {"returns": ret, "displacement": x_position() - x0, "length": length}
     finally:
         env.close()
 
@@ -57,7 +65,7 @@ def task_scores(returns: np.ndarray, displacement: np.ndarray, reference: dict[s
     r_exp = float(reference["expert_returns"][task])
     r_still = float(reference["still_returns"][task])
     d_exp = float(reference["expert_displacement"][task])
-    direction = float(np.sign(reference["tasks"][task]["forward_reward_weight"]))
+    direction = float(np.sign(reference["tasks"][task].get("forward_reward_weight", 1.0)))
     return {
         "return": float(returns),
         "normalised_return": float(returns) / r_exp,

@@ -73,7 +73,8 @@ def learning_curves(results: dict, path: str | Path) -> None:
         ax.axhline(1.0, color="black", linewidth=0.8)
         ax.axhline(results["reference"]["still_returns"][task] / results["reference"]["expert_returns"][task],
                    color="grey", linestyle=":", linewidth=1, label="zero actions")
-        ax.set_title(f"Hopper {task} ({results['setting']} setting)")
+        env = str(results.get("env_id", "Hopper-v5")).split("-v")[0]
+        ax.set_title(f"{env} {task}" + (f" ({results['setting']} setting)" if results.get("setting") else ""))
         ax.set_xlabel("environment steps")
         ax.set_ylabel("normalised return (code matched to task)")
         ax.grid(alpha=0.3)

@@ -1,0 +1,190 @@
+"""Any Gymnasium task: the generic batched simulator, task keywords, recording and merging demonstrations."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from pomil.config import from_dict, parse_kwargs
+from pomil.data import Demonstrations
+from pomil.envs import make_vec_env
+from pomil.envs.batch import GymSim
+from pomil.envs.locomotion import hopper_kwargs, locomotion_kwargs
+from pomil.envs.wrappers import parse_mask
+from pomil.errors import PomilError
+from pomil.experts import merge_demos, record_hopper_demos
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def pomil(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "pomil.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=300, cwd=cwd)
+
+
+def test_gym_sim_equals_gymnasium_and_freezes_ended_copies():
+    kwargs = {"max_episode_steps": 5}
+    sim = GymSim("Pendulum-v1", 3, kwargs)
+    envs = [gym.make("Pendulum-v1", **kwargs) for _ in range(3)]
+    obs = sim.reset(seed=11)
+    np.testing.assert_array_equal(obs, np.stack([e.reset(seed=11 + i)[0] for i, e in enumerate(envs)]))
+    rng = np.random.default_rng(0)
+    for t in range(5):
+        act = rng.uniform(-2, 2, (3, 1))
+        obs, rew, term, trunc = sim.step(act)
+        for i, e in enumerate(envs):
+            o, r, te, tr, _ = e.step(act[i].astype(np.float32))
+            np.testing.assert_array_equal(obs[i], o)
+            assert rew[i] == pytest.approx(r, abs=1e-12) and (term[i], trunc[i]) == (te, tr)
+    assert sim.done.all() and trunc.all()
+    with pytest.raises(RuntimeError, match="reset"):
+        sim.step(np.zeros((3, 1)))
+    with pytest.raises(AttributeError, match="not a MuJoCo"):
+        sim.x_position
+
+
+def test_gym_sim_halfcheetah_position_and_vec_env_mask():
+    env = make_vec_env("HalfCheetah-v5", {"max_episode_steps": 3}, 2, observation_mask=list(range(8)), seed=0)
+    obs = env.reset()
+    assert tuple(obs.shape) == (2, 8) and env.full_observation.shape == (2, 17)
+    x0 = env.sim.x_position
+    import torch
+
+    for _ in range(3):
+        obs, rew, term, trunc = env.step(torch.ones(2, 6))
+    assert bool(trunc.all()) and not bool(term.any())
+    assert np.all(env.sim.x_position != x0)
+    env.close()
+
+
+def test_non_box_spaces_are_refused():
+    with pytest.raises(ValueError, match="1-D Box"):
+        GymSim("CartPole-v1", 2)
+
+
+def test_locomotion_task_keywords():
+    assert locomotion_kwargs("HalfCheetah-v5", "backward", "paper") == {"forward_reward_weight": -1.0, "max_episode_steps": 128}
+    assert locomotion_kwargs("Walker2d-v5", "forward", "paper") == {
+        "forward_reward_weight": 1.0, "max_episode_steps": 128, "terminate_when_unhealthy": False}
+    assert locomotion_kwargs("Walker2d-v5", "forward", "standard") == {"forward_reward_weight": 1.0}
+    assert locomotion_kwargs("Hopper-v5", "forward", "paper") == hopper_kwargs("forward", "paper")
+    assert locomotion_kwargs("Pendulum-v1", "none", "standard") == {}
+    with pytest.raises(ValueError, match="forward_reward_weight"):
+        locomotion_kwargs("Pendulum-v1", "backward", "paper")
+
+
+def test_kwargs_and_mask_parsing():
+    assert parse_kwargs(("forward_reward_weight=-1", "x=abc", "flag=true", "r=[1, 2]")) == {
+        "forward_reward_weight": -1, "x": "abc", "flag": True, "r": [1, 2]}
+    with pytest.raises(PomilError, match="key=value"):
+        parse_kwargs(("novalue",))
+    from pomil.algos.expert import ExpertConfig
+
+    cfg = from_dict(ExpertConfig, {"env_kwargs": {"ctrl_cost_weight": 0.05}, "env_id": "HalfCheetah-v5"})
+    assert cfg.env_settings() == ({"forward_reward_weight": 1.0, "max_episode_steps": 128, "ctrl_cost_weight": 0.05}, None)
+    assert parse_mask("") is None and parse_mask("positions-only") == "positions-only" and parse_mask("0, 2") == [0, 2]
+    with pytest.raises(ValueError, match="comma-separated"):
+        parse_mask("velocities")
+
+
+def _demos(label_name, n, env_kwargs, value, env_id="HalfCheetah-v5", mask=None):
+    T = 4
+    return Demonstrations(
+        observations=np.full((n * T, 2), value, dtype=np.float32), actions=np.full((n * T, 1), value, dtype=np.float32),
+        episode_bounds=np.arange(0, n * T + 1, T), labels=np.zeros(n, dtype=np.int64),
+        metadata={"env_id": env_id, "env_kwargs": env_kwargs, "observation_mask": mask, "label_names": [label_name],
+                  "tasks": {label_name: env_kwargs}, "expert_returns": {label_name: value * 10},
+                  "still_returns": {label_name: 0.0}, "expert_displacement": {label_name: 1.0}})
+
+
+def test_merge_in_proportions_keeps_labels_for_evaluation_only():
+    fwd = _demos("forward", 10, {"forward_reward_weight": 1, "max_episode_steps": 4}, 1.0)
+    bwd = _demos("backward", 6, {"forward_reward_weight": -1, "max_episode_steps": 4}, 2.0)
+    m = merge_demos([fwd, bwd], seed=1)
+    assert m.num_episodes == 12 and np.bincount(m.labels).tolist() == [6, 6]
+    assert m.metadata["label_names"] == ["forward", "backward"]
+    # every episode keeps its source's rows: label 0 <-> value 1, label 1 <-> value 2
+    first_obs = m.observations[m.episode_bounds[:-1], 0]
+    np.testing.assert_array_equal(first_obs, np.where(m.labels == 0, 1.0, 2.0))
+    assert m.metadata["tasks"]["backward"]["forward_reward_weight"] == -1
+    assert m.metadata["env_kwargs"] == fwd.metadata["env_kwargs"]
+    assert m.metadata["expert_returns"] == {"forward": 10.0, "backward": 20.0}
+    m2 = merge_demos([fwd, bwd], proportions=[2, 1], seed=1)
+    assert np.bincount(m2.labels).tolist() == [10, 5]
+    m3 = merge_demos([fwd, bwd], proportions=[1, 1], episodes=4, seed=1)
+    assert np.bincount(m3.labels).tolist() == [2, 2]
+    # the same task in two files keeps one label; returns are episode-weighted
+    again = _demos("forward", 2, {"forward_reward_weight": 1, "max_episode_steps": 4}, 4.0)
+    m4 = merge_demos([fwd, again], proportions=[5, 1], seed=0)
+    assert m4.metadata["label_names"] == ["forward"] and m4.num_episodes == 12
+    assert m4.metadata["expert_returns"]["forward"] == pytest.approx((10 * 10 + 40 * 2) / 12)
+
+
+@pytest.mark.parametrize("other, text", [
+    (_demos("b", 3, {"max_episode_steps": 9}, 1.0), "differ from"),
+    (_demos("b", 3, {}, 1.0, env_id="Walker2d-v5"), "metadata.env_id"),
+    (_demos("b", 3, {}, 1.0, mask=[0, 1]), "metadata.observation_mask"),
+])
+def test_merge_refuses_incompatible_files(other, text):
+    base = _demos("a", 3, {}, 1.0)
+    with pytest.raises(ValueError, match=text):
+        merge_demos([base, other])
+    with pytest.raises(ValueError, match="requested"):
+        merge_demos([base, base], episodes=20)
+    with pytest.raises(ValueError, match="proportions"):
+        merge_demos([base, base], proportions=[1, -1])
+
+
+def test_hopper_demos_record_plus_merge_reproduce_the_shipped_file():
+    shipped = Demonstrations.load(ROOT / "data" / "hopper-paper.npz")
+    demos = record_hopper_demos({t: str(ROOT / "data" / "experts" / f"hopper-{t}.pt") for t in ("forward", "backward")}, 200)
+    for name in ("observations", "actions", "episode_bounds", "labels", "states"):
+        np.testing.assert_array_equal(getattr(demos, name), getattr(shipped, name), err_msg=name)
+    for key in ("tasks", "expert_returns", "still_returns", "expert_displacement", "observation_mask", "env_kwargs"):
+        assert demos.metadata[key] == shipped.metadata[key], key
+
+
+def test_cli_any_task_experts_record_merge_train_evaluate(tmp_path):
+    """Pendulum (not Hopper, not circles): an expert seeing cos and sin only, demos
+    with the angle's cosine observed, InfoGAIL-POMDP on them, per-task evaluation."""
+    r = pomil("experts", "train", "--env-id", "Pendulum-v1", "--task", "none", "--setting", "paper",
+              "--observation-mask", "0,1", "--iterations", 2, "--num-envs", 4, "--out", tmp_path / "e", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "e" / "evaluation.json").read_text())
+    assert report["env_id"] == "Pendulum-v1" and report["paper"]["length"] == 128
+    for name, seed in (("a", 0), ("b", 1)):
+        r = pomil("demos", "record", "--expert", tmp_path / "e" / "checkpoint.pt", "--episodes", 4,
+                  "--observation-mask", "0", "--task", name, "--seed", seed, "--out", tmp_path / f"{name}.npz")
+        assert r.returncode == 0, r.stderr
+    r = pomil("demos", "merge", tmp_path / "a.npz", tmp_path / "b.npz", "--proportions", "1,1", "--out", tmp_path / "m.npz")
+    assert r.returncode == 0 and "a 4, b 4" in r.stdout, r.stderr + r.stdout
+    m = Demonstrations.load(tmp_path / "m.npz")
+    assert m.obs_dim == 1 and m.metadata["observation_mask"] == [0] and m.states.shape[1] == 3
+    r = pomil("train", "infogail-pomdp", "--demos", tmp_path / "m.npz", "--iterations", 2, "--num-envs", 4,
+              "--bc-init-iterations", 2, "--eval-every", 1, "--eval-episodes", 2, "--out", tmp_path / "run", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    header = (tmp_path / "run" / "metrics.csv").read_text().splitlines()[0]
+    assert "eval/a/normalised_return" in header and "eval/b/progress" in header
+    r = pomil("evaluate", tmp_path / "run", "--demos", tmp_path / "m.npz", "--episodes-per-code", 2, "--json")
+    assert r.returncode == 0, r.stderr
+    result = json.loads(r.stdout)
+    assert set(result["tasks"]) == {"a", "b"} and result["num_codes"] == 2
+
+
+@pytest.mark.parametrize("args, text", [
+    (["experts", "train", "--env-id", "NoSuchEnv-v0"], "cannot build 'NoSuchEnv-v0'"),
+    (["experts", "train", "--env-id", "Pendulum-v1", "--task", "forward"], "forward_reward_weight"),
+    (["experts", "train", "--env-id", "Hopper-v5", "--env-kwargs", "bogus_weight=1"], "cannot build"),
+    (["experts", "train", "--env-id", "Pendulum-v1", "--task", "none", "--observation-mask", "7"], "[0, 3)"),
+    (["demos", "record", "--expert", "nope.pt", "--out", "x.npz"], "no expert checkpoint"),
+    (["demos", "merge", "nope.npz", "--out", "x.npz"], "no such file"),
+])
+def test_any_task_bad_input_is_one_line(args, text, tmp_path):
+    r = pomil(*args, "--no-progress" if args[0] == "experts" else "--seed=0", cwd=tmp_path)
+    assert r.returncode == 2 and text in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
