@@ -24,41 +24,13 @@ import time
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 
+from any_task_speed import batched_speed, gym_vector_speed  # benchmarks/ is on sys.path when run as a script
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.expert import ExpertConfig, train_expert
 from pomil.config import from_dict
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs
 from pomil.reproduce import HOPPER_ADVERSARIAL
-
-
-def sim_speed(num_envs: int, steps: int) -> float:
-    sim = HopperSim(num_envs, hopper_kwargs("forward", "paper"))
-    rng = np.random.default_rng(0)
-    acts = rng.uniform(-1, 1, (steps, num_envs, 3))
-    sim.reset(0)
-    t0 = time.perf_counter()
-    for t in range(steps):
-        if sim.done.all():
-            sim.reset()
-        sim.step(acts[t])
-    dt = time.perf_counter() - t0
-    sim.close()
-    return steps * num_envs / dt
-
-
-def gym_vector_speed(num_envs: int, steps: int) -> float:
-    kw = hopper_kwargs("forward", "paper")
-    env = gym.vector.SyncVectorEnv([lambda: gym.make(HOPPER_ID, **kw) for _ in range(num_envs)])
-    env.reset(seed=0)
-    env.action_space.seed(0)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        env.step(env.action_space.sample())
-    dt = time.perf_counter() - t0
-    env.close()
-    return steps * num_envs / dt
 
 
 def gym_single_speed(steps: int) -> float:
@@ -85,8 +57,9 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args()
     n = args.num_envs
-    rows = [("batched simulator (HopperSim)", sim_speed(n, 256)),
-            (f"gymnasium SyncVectorEnv x{n}", gym_vector_speed(n, 64)),
+    kw = hopper_kwargs("forward", "paper")
+    rows = [("batched simulator (HopperSim)", batched_speed(HopperSim(n, kw), 256)),
+            (f"gymnasium SyncVectorEnv x{n}", gym_vector_speed(HOPPER_ID, kw, n, 64)),
             ("gymnasium.make, one env", gym_single_speed(4000))]
     with tempfile.TemporaryDirectory() as tmp:
         train_expert(ExpertConfig(out=f"{tmp}/expert", iterations=args.iterations, progress=False, log_every=1, device=args.device))

@@ -188,3 +188,65 @@ def test_any_task_bad_input_is_one_line(args, text, tmp_path):
     assert r.returncode == 2 and text in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_training_overrides_remask_full_observations_and_replace_env_keywords(tmp_path):
+    from pomil.data import load_training_demos
+    from pomil.errors import DataError
+
+    path = ROOT / "data" / "hopper-paper.npz"
+    shipped = Demonstrations.load(path)
+    same, env_id, kw = load_training_demos(str(path), {}, "positions-only")
+    np.testing.assert_array_equal(same.observations, shipped.observations)
+    demos, env_id, kw = load_training_demos(str(path), {"max_episode_steps": 64}, [0, 5, 6])
+    assert env_id == "Hopper-v5" and kw["max_episode_steps"] == 64 and kw["forward_reward_weight"] == 1.0
+    np.testing.assert_array_equal(demos.observations, shipped.states[:, [0, 5, 6]])
+    assert demos.metadata["observation_mask"] == [0, 5, 6]
+    no_states = Demonstrations(shipped.observations, shipped.actions, shipped.episode_bounds, metadata=shipped.metadata)
+    no_states.save(tmp_path / "n.npz")
+    with pytest.raises(DataError, match="states"):
+        load_training_demos(str(tmp_path / "n.npz"), {}, [0])
+    # the CLI: a policy on height + two velocities, in 16-step episodes
+    r = pomil("train", "infogail-pomdp", "--demos", path, "--observation-mask", "0,5,6", "--env-kwargs", "max_episode_steps=16",
+              "--iterations", 1, "--num-envs", 2, "--bc-init-iterations", 1, "--eval-every", 0, "--out", tmp_path / "r",
+              "--no-progress")
+    assert r.returncode == 0, r.stderr
+    from pomil.api import TrainedPolicy
+
+    policy = TrainedPolicy.load(tmp_path / "r" / "checkpoint.pt")
+    assert policy.obs_dim == 3 and policy.env["observation_mask"] == [0, 5, 6]
+    assert policy.env["kwargs"]["max_episode_steps"] == 16
+    r = pomil("train", "bc", "--demos", path, "--observation-mask", "speed", "--out", tmp_path / "b")
+    assert r.returncode == 2 and "comma-separated integers" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_reproduce_tasks_and_a_sequential_sweep_on_any_task(tmp_path):
+    """`pomil reproduce tasks` and `pomil sweep --no-ray` on Pendulum demonstrations merged from two recordings."""
+    r = pomil("experts", "train", "--env-id", "Pendulum-v1", "--task", "none", "--iterations", 1, "--num-envs", 2,
+              "--out", tmp_path / "e", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    for name in ("up", "down"):
+        r = pomil("demos", "record", "--expert", tmp_path / "e" / "checkpoint.pt", "--episodes", 2, "--observation-mask", "0,1",
+                  "--task", name, "--out", tmp_path / f"{name}.npz")
+        assert r.returncode == 0, r.stderr
+    r = pomil("demos", "merge", tmp_path / "up.npz", tmp_path / "down.npz", "--out", tmp_path / "m.npz")
+    assert r.returncode == 0, r.stderr
+    tiny = {"num_envs": 2, "bc_init_iterations": 1, "hidden_size": 8, "eval_every": 1, "eval_episodes": 1}
+    (tmp_path / "adv.json").write_text(json.dumps(tiny))
+    r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res", "--learners", "infogail-pomdp",
+              "--seeds", 1, "--adversarial-iterations", 1, "--episodes-per-code", 1, "--adversarial-config", tmp_path / "adv.json",
+              "--no-progress", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((tmp_path / "res" / "metrics.json").read_text())
+    assert metrics["experiment"] == "tasks" and metrics["env_id"] == "Pendulum-v1" and metrics["tasks"] == ["up", "down"]
+    assert (tmp_path / "runs" / "res" / "infogail-pomdp" / "seed0" / "checkpoint.pt").exists()  # runs/ named after --out
+    assert (tmp_path / "res" / "figure.png").exists() and "| infogail-pomdp |" in (tmp_path / "res" / "table.md").read_text()
+    (tmp_path / "sweep.json").write_text(json.dumps({"learner": "infogail-pomdp", "demos": str(tmp_path / "m.npz"),
+                                                     "iterations": 1, **tiny}))
+    r = pomil("sweep", tmp_path / "sweep.json", "--seeds", 2, "--no-ray", "--episodes-per-code", 1, "--out", tmp_path / "sw")
+    assert r.returncode == 0, r.stderr
+    data = json.loads((tmp_path / "sw" / "sweep.json").read_text())
+    assert data["summary"]["base"]["seeds"] == 2 and set(data["summary"]["base"]["tasks"]) == {"up", "down"}
+    assert "up: progress" in (tmp_path / "sw" / "table.md").read_text() and (tmp_path / "sw" / "figure.png").exists()
+    r = pomil("reproduce", "tasks", "--out", tmp_path / "x", cwd=tmp_path)
+    assert r.returncode == 2 and "--demos must name" in r.stderr

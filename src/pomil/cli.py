@@ -324,7 +324,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from pomil.reproduce import CirclesReproConfig, HopperReproConfig, reproduce_circles, reproduce_hopper
 
-    if args.experiment == "hopper":
+    if args.experiment == "tasks":
+        cfg = config_from_args(HopperReproConfig, args)
+        if not cfg.demos or not Path(cfg.demos).is_file():
+            raise PomilError(f"reproduce tasks: --demos must name existing multi-task demonstrations (pomil demos merge), got {cfg.demos!r}")
+        if not cfg.out:
+            raise PomilError("reproduce tasks: --out is required (the results directory)")
+        reproduce_hopper(cfg)
+    elif args.experiment == "hopper":
         reproduce_hopper(config_from_args(HopperReproConfig, args))
     else:
         reproduce_circles(config_from_args(CirclesReproConfig, args))
@@ -435,6 +442,9 @@ def build_parser() -> argparse.ArgumentParser:
     rh = rp_sub.add_parser("hopper", help="Figure 2c: every learner over seeds on the shipped Hopper demos, table and curves")
     add_config_flags(rh, HopperReproConfig)
     rh.set_defaults(func=cmd_reproduce)
+    rt = rp_sub.add_parser("tasks", help="the Hopper protocol on any multi-task demonstrations (--demos, --out; e.g. HalfCheetah)")
+    add_config_flags(rt, HopperReproConfig)
+    rt.set_defaults(func=cmd_reproduce)
     return p
 
 

@@ -146,6 +146,10 @@ class RunConfig:
     """
 
     demos: str = option("", "demonstrations .npz to imitate (required)")
+    env_kwargs: tuple[str, ...] = option((), "environment keywords key=value that replace the demonstrations' "
+                                             "(training rollouts, evaluation), e.g. max_episode_steps=200")
+    observation_mask: str = option("", "re-mask the demonstrations' full observations (their states): positions-only or "
+                                       "indices; '' keeps the demonstrations' own view")
     out: str = option("runs/run", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     seed: int = option(0, "random seed (same seed, same run on CPU)")
     log_every: int = option(25, "iterations between log rows")
@@ -155,3 +159,7 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         check_positive(self, "log_every", "checkpoint_every")
+        from pomil.envs.wrappers import parse_mask
+
+        parse_mask(self.observation_mask)  # ValueError for a malformed mask
+        parse_kwargs(self.env_kwargs)

@@ -281,3 +281,38 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
             raise DataError("metadata.observation_mask", str(err), source) from None
     demos.check_compatible(obs_dim, act_dim, source)
     return env_id, kwargs
+
+
+def load_training_demos(path: str, env_kwargs: dict[str, Any] | None = None,
+                        observation_mask: str | list[int] | None = None) -> tuple[Demonstrations, str, dict[str, Any]]:
+    """Demonstrations for a learner, with the run's overrides applied, checked
+    against their environment: (demos, env_id, env_kwargs).
+
+    ``env_kwargs`` replace keywords of the demonstrations' environment;
+    ``observation_mask`` (a preset or indices into the full observation)
+    re-masks the demonstrations' full observations (``states``).
+    """
+    demos = Demonstrations.load(path)
+    if env_kwargs or observation_mask is not None:
+        md = dict(demos.metadata)
+        if env_kwargs:
+            md["env_kwargs"] = {**(md.get("env_kwargs") or {}), **env_kwargs}
+        observations = demos.observations
+        if observation_mask is not None:
+            from pomil.envs import env_dims
+            from pomil.envs.wrappers import resolve_observation_mask
+
+            if demos.states is None:
+                raise DataError("states", "expected the full observations, to apply an observation mask to", path)
+            try:
+                full_dim, _ = env_dims(str(md.get("env_id")), md.get("env_kwargs") or {})
+                idx = resolve_observation_mask(str(md.get("env_id")), md.get("env_kwargs") or {}, observation_mask)
+            except Exception as err:  # unknown env, bad keywords or mask
+                raise DataError("metadata.env_id", f"cannot apply the observation mask ({str(err).splitlines()[0][:160]})", path) from None
+            if demos.states.shape[1] != full_dim:
+                raise DataError("states", f"expected full observations of size {full_dim} to mask, got {demos.states.shape[1]}", path)
+            observations = demos.states if idx is None else demos.states[:, idx]
+            md["observation_mask"] = idx
+        demos = Demonstrations(observations, demos.actions, demos.episode_bounds, demos.labels, demos.states, md)
+    env_id, kwargs = check_demos_env(demos, path)
+    return demos, env_id, kwargs

@@ -19,6 +19,7 @@ figure.png (Figure-2c-style curves over env steps) and policies/.
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 import sys
 import time
@@ -53,7 +54,15 @@ CIRCLES_ADVERSARIAL: dict[str, Any] = {
 
 
 @dataclass(frozen=True)
-class CirclesReproConfig:
+class RayOptions:
+    """Where a reproduction's (learner, seed) runs go: one after another, or in parallel on Ray."""
+
+    ray: bool = option(False, "run the (learner, seed) runs in parallel on Ray (optional extra; 1 CPU each)")
+    ray_address: str = option("", "with --ray: address of an existing Ray cluster (default: a local Ray started here)")
+
+
+@dataclass(frozen=True)
+class CirclesReproConfig(RayOptions):
     out: str = option("results/circles", "results directory (metrics.json, table.md, figure.png)")
     runs: str = option("runs/circles", "where each run's checkpoint and logs go")
     demos: str = option("data/circles.npz", "demonstrations; recorded (400 episodes, seed 0) if missing")
@@ -172,27 +181,21 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
     T = int(demos.episode_lengths[0])
     rollouts["experts/positions"] = demos.states.reshape(demos.num_episodes, T, -1)[:, 1:, :2] if demos.states is not None else np.zeros((0, T - 1, 2))
     rollouts["experts/groups"] = demos.labels if demos.labels is not None else np.zeros(0, np.int64)
+
+    def report(r, n, total) -> None:
+        m = r.value["metrics"]
+        print(f"[{n}/{total}] {r.name}: purity {m['mean_purity']:.2f}, modes covered {m['modes_covered']}, "
+              f"NMI {m['nmi']:.2f}, none {m['overall_none_share']:.2f} ({r.wall_s:.0f} s)", flush=True)
+
+    done = _run_all(cfg, _circles_job, report)
     for name in cfg.learners:
-        runs, walls = [], []
-        for seed in range(cfg.seeds):
-            print(f"[{name}] seed {seed}: training", flush=True)
-            t0 = time.perf_counter()
-            ckpt = LEARNERS[name](cfg, seed, Path(cfg.runs) / name / f"seed{seed}")
-            walls.append(time.perf_counter() - t0)
-            policy = TrainedPolicy.load(ckpt)
-            metrics, roll = evaluate_circles(policy, cfg.episodes_per_code, seed=1000 + seed)
-            if name == "infogail-pomdp" and seed == 0:  # shipped, so `pomil evaluate` works without training
-                policy.save(Path(cfg.out) / "infogail-pomdp.pt")
-            metrics["checkpoint"] = str(ckpt)
-            metrics["train_seed"] = seed
-            runs.append(metrics)
-            print(f"[{name}] seed {seed}: purity {metrics['mean_purity']:.2f}, modes covered "
-                  f"{metrics['modes_covered']}, NMI {metrics['nmi']:.2f}, none {metrics['overall_none_share']:.2f} "
-                  f"({walls[-1]:.0f} s)", flush=True)
-            if seed == 0:
-                rollouts[f"{name}/positions"] = roll["positions"]
-                rollouts[f"{name}/groups"] = roll["codes"]
-        results["learners"][name] = {"runs": runs, "summary": summarise(runs), "wall_s": walls}
+        runs = [done[name, seed]["metrics"] for seed in range(cfg.seeds)]
+        results["learners"][name] = {"runs": runs, "summary": summarise(runs),
+                                     "wall_s": [done[name, seed]["wall_s"] for seed in range(cfg.seeds)]}
+        rollouts[f"{name}/positions"] = done[name, 0]["positions"]
+        rollouts[f"{name}/groups"] = done[name, 0]["codes"]
+        if name == "infogail-pomdp":  # shipped, so `pomil evaluate` works without training
+            TrainedPolicy.load(runs[0]["checkpoint"]).save(Path(cfg.out) / "infogail-pomdp.pt")
     results["wall_time_s"] = time.perf_counter() - t_start
 
     out = Path(cfg.out)
@@ -204,6 +207,32 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
     print(table)
     print(f"wrote {out}/metrics.json, table.md, figure.png in {results['wall_time_s']:.0f} s")
     return results
+
+
+def _circles_job(cfg: CirclesReproConfig, name: str, seed: int) -> dict[str, Any]:
+    print(f"[{name}] seed {seed}: training", flush=True)
+    t0 = time.perf_counter()
+    ckpt = LEARNERS[name](cfg, seed, Path(cfg.runs) / name / f"seed{seed}")
+    wall = time.perf_counter() - t0
+    metrics, roll = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
+    metrics.update(checkpoint=str(ckpt), train_seed=seed)
+    return {"metrics": metrics, "wall_s": wall, "positions": roll["positions"], "codes": roll["codes"]}
+
+
+def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable) -> dict[tuple[str, int], dict[str, Any]]:
+    """Every (learner, seed) of a reproduction, in order or on Ray; the first failure stops it."""
+    from pomil.parallel import run_jobs
+
+    if cfg.ray:  # workers may start elsewhere: every path absolute
+        where = cfg.path if hasattr(cfg, "path") else (lambda k: getattr(cfg, k))  # Hopper's defaults live in path()
+        absolute = {k: str(Path(where(k)).resolve()) for k in ("out", "runs", "demos")}
+        if cfg.adversarial_config:
+            absolute["adversarial_config"] = str(Path(cfg.adversarial_config).resolve())
+        cfg = dataclasses.replace(cfg, progress=False, **absolute)
+    keys = [(name, seed) for name in cfg.learners for seed in range(cfg.seeds)]
+    results = run_jobs(job, [(cfg, name, seed) for name, seed in keys], [f"[{n}] seed {s}" for n, s in keys],
+                       ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report)
+    return {key: r.value for key, r in zip(keys, results)}
 
 
 def plot_from_rollouts(rollouts_path: Path, figure_path: Path) -> None:
@@ -231,7 +260,7 @@ METRICS = ("normalised_return", "progress", "displacement_ratio")
 
 
 @dataclass(frozen=True)
-class HopperReproConfig:
+class HopperReproConfig(RayOptions):
     setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
     out: str = option("", "results directory (default: results/hopper, results/hopper-standard for the standard setting)")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
@@ -261,7 +290,8 @@ class HopperReproConfig:
 
     def path(self, name: str) -> Path:
         suffix = "" if self.setting == "paper" else f"-{self.setting}"
-        defaults = {"out": f"results/hopper{suffix}", "runs": f"runs/hopper{suffix}", "demos": f"data/hopper-{self.setting}.npz"}
+        defaults = {"out": f"results/hopper{suffix}", "runs": f"runs/{Path(self.out).name}" if self.out else f"runs/hopper{suffix}",
+                    "demos": f"data/hopper-{self.setting}.npz"}
         return Path(getattr(self, name) or defaults[name])
 
 
@@ -316,8 +346,24 @@ def hopper_table(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
+def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
     from pomil.eval.locomotion import evaluate_tasks, reference_of
+
+    print(f"[{name}] seed {seed}: training", flush=True)
+    t0 = time.perf_counter()
+    run_dir = cfg.path("runs") / name / f"seed{seed}"
+    ckpt = LEARNERS[name](cfg, seed, run_dir)
+    wall = time.perf_counter() - t0
+    demos_md = Demonstrations.load(cfg.demos_file).metadata
+    reference = reference_of(demos_md, cfg.demos_file)
+    metrics = evaluate_tasks(TrainedPolicy.load(ckpt), reference, cfg.episodes_per_code, seed=1000 + seed)
+    metrics.update(checkpoint=str(ckpt), train_seed=seed)
+    return {"metrics": metrics, "wall_s": wall, "curve": _curve(run_dir, list(reference["tasks"]))}
+
+
+def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
+    """The Hopper protocol; on any multi-task demonstrations (``pomil reproduce tasks``) when ``demos`` names them."""
+    from pomil.eval.locomotion import reference_of
     from pomil.eval.plots import learning_curves
 
     t_start = time.perf_counter()
@@ -327,32 +373,30 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     tasks = list(reference["tasks"])
     out = cfg.path("out")
     results: dict[str, Any] = {
-        "experiment": "hopper", "setting": cfg.setting, "config": to_dict(cfg), "seeds": cfg.seeds, "tasks": tasks,
+        "experiment": "hopper" if demos.metadata.get("env_id") == "Hopper-v5" else "tasks",
+        "env_id": demos.metadata.get("env_id"), "setting": demos.metadata.get("setting", cfg.setting), "config": to_dict(cfg), "seeds": cfg.seeds, "tasks": tasks,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path), "reference": reference,
         "adversarial_settings": {k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
                                  if k not in ("learner", "out", "seed", "progress")},
         "machine": {"python": sys.version.split()[0], "platform": platform.platform()},
         "learners": {},
     }
+
+    def report(r, n, total) -> None:
+        m = r.value["metrics"]
+        print(f"[{n}/{total}] {r.name}: " + "; ".join(
+            f"{t} (code {m['tasks'][t]['code']}): norm {m['tasks'][t]['normalised_return']:.2f}, "
+            f"progress {m['tasks'][t]['progress']:.2f}, displacement {m['tasks'][t]['displacement_ratio']:.2f}"
+            for t in tasks) + f" ({r.wall_s:.0f} s)", flush=True)
+
+    done = _run_all(cfg, _tasks_job, report)
     for name in cfg.learners:
-        runs, walls, curves = [], [], []
-        for seed in range(cfg.seeds):
-            print(f"[{name}] seed {seed}: training", flush=True)
-            t0 = time.perf_counter()
-            run_dir = cfg.path("runs") / name / f"seed{seed}"
-            ckpt = LEARNERS[name](cfg, seed, run_dir)
-            walls.append(time.perf_counter() - t0)
-            policy = TrainedPolicy.load(ckpt)
-            policy.save(out / "policies" / f"{name}-seed{seed}.pt")
-            metrics = evaluate_tasks(policy, reference, cfg.episodes_per_code, seed=1000 + seed)
-            metrics.update(checkpoint=str(ckpt), train_seed=seed)
-            runs.append(metrics)
-            curves.append(_curve(run_dir, tasks))
-            print(f"[{name}] seed {seed}: " + "; ".join(
-                f"{t} (code {metrics['tasks'][t]['code']}): norm {metrics['tasks'][t]['normalised_return']:.2f}, "
-                f"progress {metrics['tasks'][t]['progress']:.2f}, displacement {metrics['tasks'][t]['displacement_ratio']:.2f}"
-                for t in tasks) + f" ({walls[-1]:.0f} s)", flush=True)
-        results["learners"][name] = {"runs": runs, "summary": task_summary(runs, tasks), "wall_s": walls, "curves": curves}
+        runs = [done[name, seed]["metrics"] for seed in range(cfg.seeds)]
+        for seed, r in enumerate(runs):
+            TrainedPolicy.load(r["checkpoint"]).save(out / "policies" / f"{name}-seed{seed}.pt")
+        results["learners"][name] = {"runs": runs, "summary": task_summary(runs, tasks),
+                                     "wall_s": [done[name, seed]["wall_s"] for seed in range(cfg.seeds)],
+                                     "curves": [done[name, seed]["curve"] for seed in range(cfg.seeds)]}
     results["wall_time_s"] = time.perf_counter() - t_start
     write_json(out / "metrics.json", results)
     table = hopper_table(results)

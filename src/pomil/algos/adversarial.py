@@ -42,9 +42,10 @@ import torch.nn.functional as F
 
 from pomil.algos.bc import bc_step
 from pomil.api import TrainedPolicy
-from pomil.config import RunConfig, check_positive, option, to_dict
-from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
+from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn, make_vec_env
+from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
 from pomil.nn import heads
 from pomil.nn.heads import BeliefHead
@@ -264,8 +265,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     run_dir = Path(cfg.out)
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(cfg.device)
-    demos = Demonstrations.load(cfg.demos)
-    env_id, env_kwargs = check_demos_env(demos, cfg.demos)
+    demos, env_id, env_kwargs = load_training_demos(cfg.demos, parse_kwargs(cfg.env_kwargs), parse_mask(cfg.observation_mask))
     env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
     evaluate = make_evaluator(cfg, env_info, demos)
     try:

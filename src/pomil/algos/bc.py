@@ -17,9 +17,10 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.config import RunConfig, check_positive, option, to_dict
-from pomil.data import Demonstrations, PaddedEpisodes, check_demos_env
+from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.data import PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
+from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import (
@@ -84,8 +85,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     run_dir = Path(config.out)
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(config.device)
-    demos = Demonstrations.load(config.demos)
-    env_id, env_kwargs = check_demos_env(demos, config.demos)
+    demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs), parse_mask(config.observation_mask))
     generator = seed_everything(config.seed)
     arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
     policy = GaussianPolicy(arch).to(device)

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# The second locomotion task: HalfCheetah-v5 Forward/Backward with positions only,
+# end to end with the generic commands (any Gymnasium id works the same way):
+# two PPO experts, their demonstrations merged into one unlabeled set, and the
+# Hopper protocol (pomil reproduce tasks) for InfoGAIL-POMDP.  One seed by default.
+# Usage: bash scripts/halfcheetah.sh [extra `pomil reproduce tasks` flags, e.g. --seeds 3]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+pomil=.venv/bin/pomil
+for task in forward backward; do
+  if [ ! -f "data/experts/halfcheetah-$task.pt" ]; then
+    $pomil experts train --env-id HalfCheetah-v5 --task "$task" --setting paper --out "runs/experts/halfcheetah-$task"
+    mkdir -p data/experts  # ship the policy alone (no optimiser state), with its evaluation and training log
+    .venv/bin/python -c "import sys; from pomil import TrainedPolicy; TrainedPolicy.load(sys.argv[1]).save(sys.argv[2])" \
+      "runs/experts/halfcheetah-$task/checkpoint.pt" "data/experts/halfcheetah-$task.pt"
+    cp "runs/experts/halfcheetah-$task/evaluation.json" "data/experts/halfcheetah-$task-evaluation.json"
+    cp "runs/experts/halfcheetah-$task/metrics.csv" "data/experts/halfcheetah-$task-metrics.csv"
+  fi
+done
+if [ ! -f data/halfcheetah-paper.npz ]; then
+  for task in forward backward; do
+    $pomil demos record --expert "data/experts/halfcheetah-$task.pt" --task "$task" --episodes 200 \
+      --observation-mask positions-only --seed 0 --out "runs/demos/halfcheetah-$task.npz"
+  done
+  $pomil demos merge runs/demos/halfcheetah-forward.npz runs/demos/halfcheetah-backward.npz --out data/halfcheetah-paper.npz
+fi
+$pomil reproduce tasks --demos data/halfcheetah-paper.npz --out results/halfcheetah --runs runs/halfcheetah \
+  --learners infogail-pomdp --seeds 1 "$@"
