@@ -136,6 +136,52 @@ def test_bc_warm_start_puts_the_policy_on_the_circles(demos_path, tmp_path):
     assert none[250] <= 0.1 < none[0], none
 
 
+def test_mixture_warm_start_ties_codes_to_modes_and_trains_the_posterior(demos_path, tmp_path):
+    """Random codes in the warm start leave the codes meaningless (NMI ~0); the mixture
+    warm start gives each circle its own code before any adversarial step, and the
+    posterior already tells the codes apart on the policy's own rollouts."""
+    import csv
+
+    from pomil.api import TrainedPolicy
+    from pomil.eval.rollout import evaluate_circles
+
+    nmi = {}
+    for codes in ("random", "mixture"):
+        ckpt = train_adversarial(_cfg(demos_path, tmp_path / codes, iterations=1, hidden_size=32, bc_init_iterations=150,
+                                      posterior_init_iterations=50, bc_init_codes=codes, eval_every=0))
+        nmi[codes] = evaluate_circles(TrainedPolicy.load(ckpt), 100, seed=0)[0]["nmi"]
+        with open(tmp_path / codes / "metrics.csv", newline="") as f:
+            first = next(csv.DictReader(f))
+    assert nmi["random"] < 0.1 and nmi["mixture"] > 0.5, nmi
+    assert float(first["init/bc_code_share_min"]) == pytest.approx(0.5, abs=0.05)  # codes split the demonstrations evenly
+    assert float(first["init/posterior_accuracy"]) > 0.9  # on the demonstrations, labelled by their most likely code
+    assert float(first["posterior/accuracy"]) > 0.7  # on the policy's first rollout: the codes already behave differently
+
+
+def test_policy_warmup_leaves_the_policy_alone_while_value_critic_and_posterior_learn(demos_path, tmp_path):
+    cfg = _cfg(demos_path, tmp_path / "warm", iterations=2, policy_warmup_iterations=2, bc_init_iterations=5, eval_every=0)
+    warm = load_checkpoint(train_adversarial(cfg))
+    start = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "start", iterations=1, policy_warmup_iterations=2,
+                                                   bc_init_iterations=5, eval_every=0)))
+    init = {k: v.clone() for k, v in start["nets"]["value"].items()}
+    for k, v in warm["policy"].items():  # same seed, same warm start: the policy is exactly the warm-started one
+        torch.testing.assert_close(v, start["policy"][k], rtol=0, atol=0)
+    assert any(not torch.equal(v, init[k]) for k, v in warm["nets"]["value"].items())
+    moved = train_adversarial(_cfg(demos_path, tmp_path / "moved", iterations=2, bc_init_iterations=5, eval_every=0))
+    assert any(not torch.equal(v, warm["policy"][k]) for k, v in load_checkpoint(moved)["policy"].items())
+
+
+def test_bc_weight_adds_the_demonstrations_likelihood_to_the_policy_loss(demos_path, tmp_path):
+    import csv
+
+    train_adversarial(_cfg(demos_path, tmp_path / "bc", iterations=2, bc_weight=1.0, bc_init_codes="mixture", eval_every=0))
+    with open(tmp_path / "bc" / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert all(r["ppo/bc_nll"] and torch.isfinite(torch.tensor(float(r["ppo/bc_nll"]))) for r in rows)
+    with pytest.raises(ValueError, match="bc_weight"):
+        _cfg(demos_path, tmp_path / "bad", bc_weight=-1.0)
+
+
 def test_gan_critic_is_never_weight_clipped(demos_path, tmp_path):
     ckpt = train_adversarial(_cfg(demos_path, tmp_path / "gail", learner="gail", weight_clip=0.01, critic_steps=2))
     assert max(p.abs().max().item() for p in load_checkpoint(ckpt)["nets"]["critic"].values()) > 0.01

@@ -74,3 +74,64 @@ def test_checkpoints_load_with_weights_only(demos_path, tmp_path):
     payload = torch.load(ckpt, weights_only=True)
     assert payload["format"] == "pomil-checkpoint" and payload["algo"] == "bc"
     assert payload["env"]["id"] == "pomil/Circles-v0"
+
+
+def test_balanced_responsibilities_are_a_balanced_soft_assignment():
+    from pomil.algos.bc import balanced_responsibilities
+
+    # every item prefers code 0, yet each code must take half of them: the two that prefer it least go to code 1
+    scores = torch.tensor([[4.0, 3.0, 2.0, 1.0], [0.0, 0.0, 0.0, 0.0]])
+    q = balanced_responsibilities(scores)
+    torch.testing.assert_close(q.sum(0), torch.ones(4))
+    torch.testing.assert_close(q.sum(1), torch.full((2,), 2.0))
+    assert q[0, 0] > q[0, 1] > q[0, 2] > q[0, 3] and q[0, 0] > 0.8 and q[0, 3] < 0.2
+    # clear clusters keep their hard assignment
+    hard = balanced_responsibilities(torch.tensor([[50.0, -50.0, 50.0, -50.0], [-50.0, 50.0, -50.0, 50.0]]))
+    torch.testing.assert_close(hard, torch.tensor([[1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0]]), atol=1e-4, rtol=0)
+
+
+def test_unroll_every_code_agrees_with_unroll_per_code():
+    from pomil.nn.policy import GaussianPolicy, PolicyArch
+
+    torch.manual_seed(0)
+    policy = GaussianPolicy(PolicyArch(3, 2, "gru", 16, num_codes=3))
+    T, N = 7, 5
+    obs, prev = torch.randn(T, N, 3), torch.randn(T, N, 2)
+    starts = torch.zeros(T, N, dtype=torch.bool)
+    starts[0] = True
+    every = policy.unroll_every_code(obs, prev, policy.initial_state(N), starts)
+    assert every.mean.shape == (3, T, N, 2)
+    for k in range(3):
+        one = torch.nn.functional.one_hot(torch.full((N,), k), 3).float()
+        dist, _ = policy.unroll(obs, prev, policy.initial_state(N), starts, codes=one)
+        torch.testing.assert_close(every.mean[k], dist.mean)
+        torch.testing.assert_close(every.stddev[k], dist.stddev)
+
+
+def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code():
+    """Episodes look the same but half act +0.6 and half -0.6: a code per episode must
+    explain the difference, and the mixture likelihood gives each cluster its own code."""
+    from pomil.algos.bc import bc_step, most_likely_codes
+    from pomil.data import PaddedEpisodes
+    from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(0)
+    T, E = 12, 64
+    cluster = torch.arange(E) % 2
+    obs = torch.randn(T, E, 2, generator=g)
+    actions = (torch.where(cluster == 0, 0.6, -0.6).view(1, E, 1) + 0.05 * torch.randn(T, E, 1, generator=g)).expand(T, E, 2).contiguous()
+    data = PaddedEpisodes(obs, actions, torch.ones(T, E, dtype=torch.bool))
+    policy = GaussianPolicy(PolicyArch(2, 2, "mlp", 32, num_codes=2))
+    opt = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    prev = shift_actions(actions)
+    for _ in range(150):
+        stats = bc_step(policy, opt, data, prev, 32, g, num_codes=2, mixture=True)
+    codes = most_likely_codes(policy, data, prev)
+    agreement = (codes == cluster).float().mean().item()
+    assert max(agreement, 1 - agreement) == 1.0, codes  # codes are a relabelling of the clusters
+    assert stats["bc/responsibility_max"] > 0.99
+    with torch.no_grad():
+        mean = policy.unroll_every_code(obs, prev, policy.initial_state(E), torch.zeros(T, E, dtype=torch.bool)).mean
+    per_code = sorted(mean[k].mean().item() for k in range(2))
+    assert per_code[0] == pytest.approx(-0.6, abs=0.05) and per_code[1] == pytest.approx(0.6, abs=0.05)

@@ -40,7 +40,7 @@ from typing import Any, Callable, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import bc_step
+from pomil.algos.bc import bc_step, demo_bc_loss, most_likely_codes
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
@@ -100,8 +100,16 @@ class AdversarialConfig(RunConfig):
     bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)")
     bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start")
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step")
+    bc_init_codes: Literal["random", "mixture"] = option("random", "codes in the warm start: random per episode (InfoGAIL), or "
+                                                         "mixture: each code clones its own cluster of episodes (mixture likelihood)")
+    posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
+                                                 "each episode labelled with its most likely code")
     log_std_init: float = option(-1.0, "initial log std of the policy")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
+    bc_weight: float = option(0.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
+                                    "policy's PPO loss (keeps the policy near the demonstrations; 0: off)")
+    policy_warmup_iterations: int = option(0, "first iterations in which only the critic, posterior and value learn "
+                                              "(the warm-started policy waits for a trained value and critic)")
     eval_every: int = option(25, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)")
     eval_episodes: int = option(50, "evaluation rollouts per code")
     log_every: int = option(5, "iterations between log rows")
@@ -111,10 +119,10 @@ class AdversarialConfig(RunConfig):
         super().__post_init__()
         check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs", "bc_init_batch",
                        "minibatches", "window_length", "eval_episodes")
-        if self.bc_init_iterations < 0:
-            raise ValueError(f"bc_init_iterations must be >= 0, got {self.bc_init_iterations}")
-        if self.gradient_penalty < 0 or self.weight_clip < 0:
-            raise ValueError("gradient_penalty and weight_clip must be >= 0")
+        if min(self.bc_init_iterations, self.posterior_init_iterations, self.policy_warmup_iterations) < 0:
+            raise ValueError("bc_init_iterations, posterior_init_iterations and policy_warmup_iterations must be >= 0")
+        if self.gradient_penalty < 0 or self.weight_clip < 0 or self.bc_weight < 0:
+            raise ValueError("gradient_penalty, weight_clip and bc_weight must be >= 0")
         if self.num_codes in (0, 1) or self.num_codes < -1:
             raise ValueError(f"num_codes must be -1 (from the demonstrations) or >= 2, got {self.num_codes}")
 
@@ -201,11 +209,15 @@ def critic_loss(
 
 def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked cross-entropy of each step's code; code_idx_steps (T, B)."""
-    logits, _ = post.unroll(batch.observations, batch.prev_actions, post.initial_state(batch.num_envs, batch.starts.device),
-                            batch.starts, extra=batch.executed_actions)
+    return _code_cross_entropy(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts, batch.mask,
+                               code_idx_steps)
+
+
+def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, mask, code_idx_steps) -> tuple[torch.Tensor, dict[str, float]]:
+    logits, _ = post.unroll(obs, prev_actions, post.initial_state(obs.shape[1], obs.device), starts, extra=actions)
     ce = F.cross_entropy(logits.flatten(0, 1), code_idx_steps.flatten(), reduction="none").view_as(code_idx_steps)
-    loss = masked_mean(ce, batch.mask)
-    acc = masked_mean((logits.argmax(-1) == code_idx_steps).float(), batch.mask)
+    loss = masked_mean(ce, mask)
+    acc = masked_mean((logits.argmax(-1) == code_idx_steps).float(), mask)
     return loss, {"posterior/loss": loss.item(), "posterior/accuracy": acc.item()}
 
 
@@ -291,8 +303,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     expert = demos.padded(device)
     expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
     expert_prev = shift_actions(expert.actions)
-    if start == 0 and cfg.bc_init_iterations > 0:
-        bc_warm_start(m.policy, expert, expert_prev, num_codes, cfg, gen)
+    init_stats = bc_warm_start(m, expert, expert_prev, num_codes, cfg, gen) if start == 0 and cfg.bc_init_iterations > 0 else {}
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
                        key_stats=("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein"))
 
@@ -305,11 +316,12 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             "optimizers": {k: o.state_dict() for k, o in opt.items()}, "rng": rng_state(gen),
         })
 
+    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
     timers = {"rollout": 0.0, "critic": 0.0, "posterior": 0.0, "ppo": 0.0}
     steps_done = 0
     t_start = time.perf_counter()
     for it in range(start + 1, cfg.iterations + 1):
-        stats: dict[str, float] = {}
+        stats: dict[str, float] = init_stats if it == 1 else {}
         # 1. rollout
         t0 = time.perf_counter()
         roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device)
@@ -362,12 +374,17 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                     dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v, b.values,
                     b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, cfg.value_clip or None, 0.5, cfg.ent_coef,
                 )
+                if cfg.bc_weight > 0:
+                    bc, bc_stats = demo_bc_loss(m.policy, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture)
+                    loss = loss + cfg.bc_weight * bc
+                    s["ppo/bc_nll"] = bc_stats["bc/nll"]
                 opt["policy"].zero_grad(set_to_none=True)
                 opt["value"].zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5)
                 torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5)  # without a shared encoder
-                opt["policy"].step()
+                if it > cfg.policy_warmup_iterations:
+                    opt["policy"].step()
                 opt["value"].step()
         stats.update(s)
         t4 = time.perf_counter()
@@ -398,17 +415,35 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
     return b.with_(log_probs=dist.log_prob(b.actions).sum(-1), values=v)
 
 
-def bc_warm_start(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
+def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
                   cfg: AdversarialConfig, gen: torch.Generator) -> dict[str, float]:
-    """Behaviour cloning of the whole (unlabelled) demonstration set, as InfoGAIL
-    initialises its policy.  Each episode gets a random code: the demonstrations
-    carry no code, so the policy starts out ignoring it and the mutual-information
-    reward later makes the codes choose between modes."""
-    opt = torch.optim.Adam(policy.parameters(), lr=cfg.bc_init_lr)
+    """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
+
+    ``bc_init_codes = "random"`` (InfoGAIL's initialisation): each episode gets a random
+    code, so the policy starts out ignoring it and the mutual-information reward later
+    makes the codes choose between modes.  ``"mixture"``: the policy maximises the
+    demonstrations' likelihood under a uniform mixture of its codes, so each code clones
+    its own cluster of episodes; the posterior then learns, on the demonstrations, to
+    tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
+    opt = torch.optim.Adam(m.policy.parameters(), lr=cfg.bc_init_lr)
+    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
     stats: dict[str, float] = {}
     for _ in range(cfg.bc_init_iterations):
-        stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes)
-    return stats
+        stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture)
+    if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
+        codes = most_likely_codes(m.policy, expert, expert_prev)
+        stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
+        post_opt = torch.optim.Adam(m.posterior.parameters(), lr=cfg.bc_init_lr)
+        starts = _first_step_starts(expert.mask)
+        for _ in range(cfg.posterior_init_iterations):
+            idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
+            loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
+                                          starts[:, idx], expert.mask[:, idx], codes[idx].expand(expert.mask.shape[0], -1))
+            post_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            post_opt.step()
+        stats.update(s)
+    return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
 def _posterior_batches(roll: Rollout, code_steps: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):

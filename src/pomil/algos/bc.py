@@ -9,6 +9,7 @@ run.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,20 +63,69 @@ def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, ma
     return nll, {"bc/nll": nll.item(), "bc/action_mse": mse.item(), "bc/log_std": policy.log_std.mean().item()}
 
 
-def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
-            batch_episodes: int, generator: torch.Generator, num_codes: int = 0) -> dict[str, float]:
-    """One update on a random batch of whole episodes.  A policy with latent codes
-    gets a random code per episode (demonstrations carry none)."""
+def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
+                 generator: torch.Generator, num_codes: int = 0, mixture: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """Behaviour-cloning loss on a random batch of whole demonstration episodes.  A policy with
+    latent codes gets a random code per episode (demonstrations carry none), or, with
+    ``mixture``, the codes' mixture likelihood (:func:`mixture_bc_loss`)."""
     n_ep = data.mask.shape[1]
     idx = torch.randint(n_ep, (min(batch_episodes, n_ep),), generator=generator).to(data.mask.device)
+    batch = data.select(idx)
+    if mixture:
+        loss, _, stats = mixture_bc_loss(policy, batch, prev_actions[:, idx])
+        return loss, stats
     codes = (F.one_hot(torch.randint(num_codes, (len(idx),), generator=generator), num_codes).float().to(idx.device)
              if num_codes else None)
-    batch = data.select(idx)
-    loss, stats = bc_loss(policy, batch.observations, batch.actions, batch.mask, prev_actions[:, idx], codes)
+    return bc_loss(policy, batch.observations, batch.actions, batch.mask, prev_actions[:, idx], codes)
+
+
+def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
+            batch_episodes: int, generator: torch.Generator, num_codes: int = 0, mixture: bool = False) -> dict[str, float]:
+    """One update of :func:`demo_bc_loss`."""
+    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes, generator, num_codes, mixture)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
     return stats
+
+
+def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    """Behaviour cloning of unlabelled episodes by a mixture of the policy's K codes (EM).
+
+    Each episode's log-likelihood under each code, L_k = sum_t log pi(a_t | b_t, k), gives
+    responsibilities q (K, B); the loss is -sum_k q_k L_k per step, so each code clones the
+    episodes it is responsible for.  The responsibilities are balanced so that every code
+    is responsible for 1/K of the batch (Sinkhorn iterations on the
+    log-likelihoods of whole episodes): the code prior is uniform, and without balancing the code that starts
+    out slightly better takes every episode and the others never learn.  Returns (loss per
+    step, responsibilities, stats)."""
+    mask = data.mask
+    starts = torch.zeros_like(mask)
+    starts[0] = True
+    dist = policy.unroll_every_code(data.observations, prev_actions, policy.initial_state(mask.shape[1], mask.device), starts)
+    m = mask.to(data.observations.dtype)
+    ll = (dist.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)  # (K, B): each episode under each code
+    resp = balanced_responsibilities(ll.detach())
+    loss = -(resp * ll).sum() / m.sum()
+    return loss, resp, {"bc/nll": loss.item(), "bc/responsibility_max": resp.max(0).values.mean().item(),
+                        "bc/log_std": policy.log_std.mean().item()}
+
+
+def balanced_responsibilities(scores: torch.Tensor, iterations: int = 50) -> torch.Tensor:
+    """Soft assignment (K, B) of B items to K codes, each item's column summing to 1 and
+    each code's row to B / K, close to softmax(scores) over codes (log-domain Sinkhorn)."""
+    k, b = scores.shape
+    log_q = scores - scores.max()
+    for _ in range(iterations):
+        log_q = log_q - torch.logsumexp(log_q, 1, keepdim=True) + math.log(b / k)
+        log_q = log_q - torch.logsumexp(log_q, 0, keepdim=True)
+    return log_q.exp()
+
+
+@torch.no_grad()
+def most_likely_codes(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> torch.Tensor:
+    """Each episode's most likely code under the policy, (E,)."""
+    return mixture_bc_loss(policy, data, prev_actions)[1].argmax(0)
 
 
 def train_bc(config: BCConfig, resume: bool = False) -> Path:

@@ -69,6 +69,16 @@ class GaussianPolicy(nn.Module):
             codes = codes.unsqueeze(0).expand(feats.shape[0], -1, -1)
         return self._dist(feats, codes), h
 
+    def unroll_every_code(self, obs, prev_actions, h0, starts) -> Normal:
+        """The action distribution under each of the K codes for a (T, N) block:
+        batch shape (K, T, N, act_dim).  The encoder runs once (the code enters after it)."""
+        if self.code_embed is None:
+            raise ValueError("this policy has no latent codes")
+        feats, _ = self.encoder.unroll(obs, prev_actions, h0, starts)
+        k = self.arch.num_codes
+        codes = torch.eye(k, device=feats.device).view(k, 1, 1, k).expand(k, *feats.shape[:2], k)
+        return self._dist(feats.unsqueeze(0).expand(k, -1, -1, -1), codes)
+
 
 def shift_actions(actions: torch.Tensor) -> torch.Tensor:
     """Previous actions a_{t-1} for a time-major (T, N, act_dim) block, zero at t = 0."""
