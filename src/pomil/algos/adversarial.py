@@ -317,11 +317,16 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         })
 
     mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
+    if start == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
+        if evaluate is not None:
+            init_stats.update(evaluate(m.policy), **{"eval/env_steps": 0.0})
+        if init_stats:
+            logger.log(0, init_stats)
     timers = {"rollout": 0.0, "critic": 0.0, "posterior": 0.0, "ppo": 0.0}
     steps_done = 0
     t_start = time.perf_counter()
     for it in range(start + 1, cfg.iterations + 1):
-        stats: dict[str, float] = init_stats if it == 1 else {}
+        stats: dict[str, float] = {}
         # 1. rollout
         t0 = time.perf_counter()
         roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device)
