@@ -80,7 +80,8 @@ def test_reproduce_hopper_smoke_with_override(tmp_path):
     import json
 
     override = tmp_path / "adv.json"
-    override.write_text(json.dumps({"num_envs": 8, "critic_batch": 8, "bc_init_iterations": 2, "eval_every": 1, "eval_episodes": 2}))
+    override.write_text(json.dumps({"num_envs": 8, "critic_batch": 8, "bc_init_iterations": 2, "posterior_init_iterations": 2,
+                                    "eval_every": 1, "eval_episodes": 2}))
     out = tmp_path / "results"
     assert main(["reproduce", "hopper", "--seeds", "1", "--learners", "bc-mlp,infogail-pomdp", "--bc-iterations", "2",
                  "--adversarial-iterations", "1", "--adversarial-config", str(override), "--episodes-per-code", "2",
@@ -88,7 +89,19 @@ def test_reproduce_hopper_smoke_with_override(tmp_path):
     results = json.loads((out / "metrics.json").read_text())
     assert results["adversarial_settings"]["num_envs"] == 8  # the user's file, not only the recipe
     ip = results["learners"]["infogail-pomdp"]
-    assert ip["curves"][0]["env_steps"] == [8 * 128.0]
+    assert ip["curves"][0]["env_steps"] == [0.0, 8 * 128.0]  # after the warm start, then after iteration 1
+    assert results["adversarial_settings"]["bc_init_codes"] == "mixture"  # the Hopper recipe under the user's file
     assert set(ip["runs"][0]["tasks"]) == {"forward", "backward"}
     assert (out / "table.md").exists() and (out / "figure.png").exists()
     assert (out / "policies" / "infogail-pomdp-seed0.pt").exists()
+
+
+def test_standard_setting_records_from_the_shipped_standard_experts(tmp_path):
+    """The paper-setting experts fall soon after step 128; the standard setting has experts of its own."""
+    from pomil.reproduce import HopperReproConfig, hopper_demos
+
+    path = hopper_demos(HopperReproConfig(setting="standard", demos=str(tmp_path / "std.npz"), demo_episodes=2))
+    demos = Demonstrations.load(path)
+    assert demos.metadata["setting"] == "standard" and demos.num_episodes == 4
+    assert demos.metadata["expert_returns"]["forward"] > 1500 and demos.metadata["expert_returns"]["backward"] > 1500
+    assert demos.episode_lengths.max() > 128

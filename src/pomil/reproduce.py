@@ -266,7 +266,9 @@ HOPPER_ADVERSARIAL: dict[str, Any] = {
     "eval_episodes": 10,
     "log_every": 5,
 }
-HOPPER_EXPERTS = {task: f"data/experts/hopper-{task}.pt" for task in ("forward", "backward")}
+# Shipped experts per setting: the paper setting's never learned to stay healthy past 128 steps.
+HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper' else '-' + setting}-{task}.pt"
+                            for task in ("forward", "backward")} for setting in ("paper", "standard")}
 METRICS = ("normalised_return", "progress", "displacement_ratio")
 
 
@@ -313,11 +315,12 @@ def hopper_demos(cfg: HopperReproConfig) -> Path:
     path = cfg.path("demos")
     if path.exists():
         return path
-    missing = [p for p in HOPPER_EXPERTS.values() if not Path(p).exists()]
+    experts = HOPPER_EXPERTS[cfg.setting]
+    missing = [p for p in experts.values() if not Path(p).exists()]
     if missing:
         raise PomilError(f"{path} is missing and so are the experts to record it from ({', '.join(missing)}); "
-                         f"train them with `pomil experts hopper --task forward|backward`")
-    demos = record_hopper_demos(HOPPER_EXPERTS, cfg.demo_episodes, cfg.setting)
+                         f"train them with `pomil experts hopper --task forward|backward --setting {cfg.setting}`")
+    demos = record_hopper_demos(experts, cfg.demo_episodes, cfg.setting)
     demos.save(path)
     print(f"recorded {path}: {demos.num_episodes} expert episodes", flush=True)
     return path
