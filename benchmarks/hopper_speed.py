@@ -10,7 +10,8 @@ Prints env-steps/s of:
 4. expert PPO training (``pomil experts hopper``: rollouts + updates);
 5. InfoGAIL-POMDP training on the shipped demonstrations with the Hopper
    recipe of ``pomil reproduce hopper`` (everything included: rollout,
-   critic, posterior, PPO; BC warm start off so that only the loop is timed).
+   critic, posterior, PPO with its BC term; warm start and policy warm-up off
+   so that only the loop is timed).
 
     .venv/bin/python benchmarks/hopper_speed.py [--num-envs 64] [--iterations 3] [--device cpu]
 """
@@ -65,7 +66,7 @@ def main() -> None:
         train_expert(ExpertConfig(out=f"{tmp}/expert", iterations=args.iterations, progress=False, log_every=1, device=args.device))
         rows.append(("expert PPO training (64 envs, MLP)", float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
         values = {**HOPPER_ADVERSARIAL, "learner": "infogail-pomdp", "demos": args.demos, "out": f"{tmp}/ip",
-                  "iterations": args.iterations, "bc_init_iterations": 0, "eval_every": 0, "log_every": 1,
+                  "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
                   "progress": False, "device": args.device, "num_envs": n}
         train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
         row = last_row(Path(tmp) / "ip")
