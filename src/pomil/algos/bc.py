@@ -95,10 +95,10 @@ def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: 
     Each episode's log-likelihood under each code, L_k = sum_t log pi(a_t | b_t, k), gives
     responsibilities q (K, B); the loss is -sum_k q_k L_k per step, so each code clones the
     episodes it is responsible for.  The responsibilities are balanced so that every code
-    is responsible for 1/K of the batch (Sinkhorn iterations on the
-    log-likelihoods of whole episodes): the code prior is uniform, and without balancing the code that starts
-    out slightly better takes every episode and the others never learn.  Returns (loss per
-    step, responsibilities, stats)."""
+    is responsible for 1/K of the batch (Sinkhorn iterations on the whole-episode
+    log-likelihoods): the code prior is uniform, and without balancing the code that
+    starts out slightly better takes every episode and the others never learn.
+    Returns (loss per step, responsibilities, stats)."""
     mask = data.mask
     starts = torch.zeros_like(mask)
     starts[0] = True
