@@ -303,7 +303,8 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     expert = demos.padded(device)
     expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
     expert_prev = shift_actions(expert.actions)
-    init_stats = bc_warm_start(m, expert, expert_prev, num_codes, cfg, gen) if start == 0 and cfg.bc_init_iterations > 0 else {}
+    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0  # the warm start's and the BC term's likelihood
+    init_stats = bc_warm_start(m, expert, expert_prev, num_codes, mixture, cfg, gen) if start == 0 and cfg.bc_init_iterations > 0 else {}
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
                        key_stats=("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein"))
 
@@ -316,7 +317,6 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             "optimizers": {k: o.state_dict() for k, o in opt.items()}, "rng": rng_state(gen),
         })
 
-    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
     if start == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
         if evaluate is not None:
             init_stats.update(evaluate(m.policy), **{"eval/env_steps": 0.0})
@@ -420,18 +420,18 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
     return b.with_(log_probs=dist.log_prob(b.actions).sum(-1), values=v)
 
 
-def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
+def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
                   cfg: AdversarialConfig, gen: torch.Generator) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
 
-    ``bc_init_codes = "random"`` (InfoGAIL's initialisation): each episode gets a random
-    code, so the policy starts out ignoring it and the mutual-information reward later
-    makes the codes choose between modes.  ``"mixture"``: the policy maximises the
+    Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
+    episode gets a random code, so the policy starts out ignoring it and the
+    mutual-information reward later makes the codes choose between modes.  With
+    ``mixture`` (``bc_init_codes = "mixture"`` and a policy with codes) the policy maximises the
     demonstrations' likelihood under a uniform mixture of its codes, so each code clones
     its own cluster of episodes; the posterior then learns, on the demonstrations, to
     tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
     opt = torch.optim.Adam(m.policy.parameters(), lr=cfg.bc_init_lr)
-    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
     stats: dict[str, float] = {}
     for _ in range(cfg.bc_init_iterations):
         stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture)
