@@ -13,7 +13,11 @@ Prints env-steps/s of:
    critic, posterior, PPO with its BC term; warm start and policy warm-up off
    so that only the loop is timed).
 
-    .venv/bin/python benchmarks/hopper_speed.py [--num-envs 64] [--iterations 3] [--device cpu]
+    .venv/bin/python benchmarks/hopper_speed.py [--num-envs 256] [--iterations 3] [--device cpu]
+        [--train-envs 256,1024,4096]
+
+``--train-envs`` times InfoGAIL-POMDP training once per number of parallel
+environments (for a GPU: many environments, large batches).
 """
 
 from __future__ import annotations
@@ -21,10 +25,12 @@ from __future__ import annotations
 import argparse
 import csv
 import tempfile
+import os
 import time
 from pathlib import Path
 
 import gymnasium as gym
+import torch
 
 from any_task_speed import batched_speed, gym_vector_speed  # benchmarks/ is on sys.path when run as a script
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
@@ -56,27 +62,34 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=3, help="training iterations timed for 4 and 5")
     ap.add_argument("--demos", default="data/hopper-paper.npz")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--train-envs", default="", help="comma-separated env counts for 5 (default: --num-envs)")
     args = ap.parse_args()
     n = args.num_envs
+    train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
     kw = hopper_kwargs("forward", "paper")
+    gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
+    print(f"torch {torch.__version__}, {os.cpu_count()} CPU cores, {torch.get_num_threads()} torch threads, device {args.device} ({gpu})")
     rows = [("batched simulator (HopperSim)", batched_speed(HopperSim(n, kw), 256)),
             (f"gymnasium SyncVectorEnv x{n}", gym_vector_speed(HOPPER_ID, kw, n, 64)),
             ("gymnasium.make, one env", gym_single_speed(4000))]
+    share_lines: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
         train_expert(ExpertConfig(out=f"{tmp}/expert", iterations=args.iterations, progress=False, log_every=1, device=args.device))
         rows.append(("expert PPO training (64 envs, MLP)", float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
-        values = {**HOPPER_ADVERSARIAL, "learner": "infogail-pomdp", "demos": args.demos, "out": f"{tmp}/ip",
-                  "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
-                  "progress": False, "device": args.device, "num_envs": n}
-        train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
-        row = last_row(Path(tmp) / "ip")
-        rows.append((f"InfoGAIL-POMDP training ({n} envs, all updates)", float(row["time/env_steps_per_s"])))
+        for m in train_envs:
+            values = {**HOPPER_ADVERSARIAL, "learner": "infogail-pomdp", "demos": args.demos, "out": f"{tmp}/ip{m}",
+                      "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0,
+                      "log_every": 1, "progress": False, "device": args.device, "num_envs": m}
+            train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
+            row = last_row(Path(tmp) / f"ip{m}")
+            rows.append((f"InfoGAIL-POMDP training ({m} envs, all updates)", float(row["time/env_steps_per_s"])))
+            shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
+            share_lines.append(f"InfoGAIL-POMDP time shares, {m} envs: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
     base = rows[1][1]
     print(f"{'what':52s} {'env-steps/s':>12s} {'vs SyncVectorEnv':>17s}")
     for name, v in rows:
         print(f"{name:52s} {v:12,.0f} {v / base:16.2f}x")
-    shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
-    print("InfoGAIL-POMDP time shares: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
+    print("\n".join(share_lines))
 
 
 if __name__ == "__main__":

@@ -196,7 +196,8 @@ def critic_loss(
         alpha = torch.rand(1, b, 1, device=e_obs.device)
         mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
         obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.executed_actions)
-        f_i = score(obs_i, prev_i, act_i, e_starts[:t, :b])
+        with torch.backends.cudnn.flags(enabled=False):  # cuDNN's GRU has no double backward; the penalty needs one
+            f_i = score(obs_i, prev_i, act_i, e_starts[:t, :b])
         inputs = (obs_i, prev_i, act_i)
         grads = torch.autograd.grad(f_i.sum(), inputs, create_graph=True, allow_unused=True)  # MLPs ignore prev
         norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)], dim=-1).norm(dim=-1)

@@ -134,7 +134,7 @@ class HopperSim:
         self.init_qpos = self.data[0].qpos.copy()
         self.init_qvel = self.data[0].qvel.copy()
         self.ctrl_range = self.model.actuator_ctrlrange.copy()
-        n_threads = threads if threads is not None else min(os.cpu_count() or 1, 4)
+        n_threads = threads if threads is not None else min(os.cpu_count() or 1, 16)
         n_threads = max(1, min(n_threads, num_envs // 8 or 1))
         self._chunks = [range(i, num_envs, n_threads) for i in range(n_threads)]
         self._pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
