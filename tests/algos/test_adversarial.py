@@ -200,3 +200,32 @@ def test_shared_value_encoder_is_one_module_trained_once(demos_path, tmp_path):
         assert torch.equal(ckpt["nets"]["value"][k], v)
     # the value optimiser holds only the value head's parameters
     assert len(ckpt["optimizers"]["value"]["param_groups"][0]["params"]) == len(list(m.value.mlp.parameters()))
+
+
+def test_noisy_expert_actions_carry_the_policy_noise_and_stay_shifted(demos_path, tmp_path):
+    import math
+
+    from pomil.algos.adversarial import noisy_expert_actions
+    from pomil.data import Demonstrations
+    from pomil.nn.policy import shift_actions
+
+    expert = Demonstrations.load(demos_path).padded()
+    m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), expert.observations.shape[-1],
+                         expert.actions.shape[-1], 2, "cpu")
+    identity = lambda a: a  # noqa: E731
+    with torch.no_grad():
+        m.policy.log_std.fill_(math.log(0.3))
+    act, prev = noisy_expert_actions(expert, m.policy, identity, torch.Generator().manual_seed(0))
+    noise = (act - expert.actions)[expert.mask]
+    assert abs(noise.std().item() - 0.3) < 0.01 and abs(noise.mean().item()) < 0.01
+    torch.testing.assert_close(prev, shift_actions(act))
+    again, _ = noisy_expert_actions(expert, m.policy, identity, torch.Generator().manual_seed(0))
+    assert torch.equal(act, again)
+    clamped, _ = noisy_expert_actions(expert, m.policy, lambda a: a.clamp(-0.1, 0.1), torch.Generator().manual_seed(1))
+    assert clamped.abs().max() <= 0.1
+    with torch.no_grad():
+        m.policy.log_std.fill_(-30.0)
+    quiet, _ = noisy_expert_actions(expert, m.policy, identity, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(quiet, expert.actions)
+    train_adversarial(_cfg(demos_path, tmp_path / "noisy", iterations=2, expert_action_noise=True, eval_every=0))
+    assert (tmp_path / "noisy" / "checkpoint.pt").exists()

@@ -83,6 +83,8 @@ class AdversarialConfig(RunConfig):
     critic_optimizer: Literal["rmsprop", "adam"] = option("rmsprop", "rmsprop (paper text) or adam (paper code)")
     critic_steps: int = option(3, "critic updates per iteration")
     critic_batch: int = option(64, "expert and policy episodes per critic update")
+    expert_action_noise: bool = option(False, "add the policy's current action noise to the demonstrations' actions the critic "
+                                       "sees, so that it cannot tell deterministic experts from the policy by action jitter")
     weight_clip: float = option(0.01, "clip Wasserstein critic weights to +-this after each update (0: off; never for GAIL's GAN critic)")
     gradient_penalty: float = option(0.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam")
     posterior_steps: int = option(1, "posterior updates per iteration")
@@ -142,10 +144,11 @@ def _first_step_starts(mask: torch.Tensor) -> torch.Tensor:
 
 
 # -------------------------------------------------------------- critic, posterior
-def _expert_batch(expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):
+def _expert_batch(expert: PaddedEpisodes, actions: torch.Tensor, prev: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):
     """(obs, prev_actions, actions, starts, mask) of expert episodes or windows.
 
-    ``expert_prev`` = shift_actions(expert.actions), computed once per run.
+    ``actions`` (T, E, act_dim) are the demonstrations' actions as the critic
+    sees them (noised or not) and ``prev`` = shift_actions(actions).
     """
     T, E = expert.mask.shape
     if cfg.update_mode == "window":
@@ -157,7 +160,23 @@ def _expert_batch(expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: Advers
     t_idx, e = t_idx.to(dev), e.to(dev)
     ei = e.unsqueeze(0).expand_as(t_idx)
     mask = expert.mask[t_idx, ei]
-    return expert.observations[t_idx, ei], expert_prev[t_idx, ei], expert.actions[t_idx, ei], _first_step_starts(mask), mask
+    return expert.observations[t_idx, ei], prev[t_idx, ei], actions[t_idx, ei], _first_step_starts(mask), mask
+
+
+def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy, execute: Callable[[torch.Tensor], torch.Tensor],
+                         gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """(actions, prev_actions) of the demonstrations with the policy's current action noise added.
+
+    Deterministic experts never show the jitter of a sampled Gaussian action;
+    a critic fed raw demonstrations can tell them from the policy by that
+    jitter alone, whatever the gait.  Each demonstration action gets
+    N(0, std^2) noise (std = the policy's current std) and is then mapped to
+    an executed action as the policy's samples are.
+    """
+    with torch.no_grad():
+        noise = torch.randn(expert.actions.shape, generator=gen).to(expert.actions.device)
+        actions = execute(expert.actions + policy.log_std.exp() * noise)
+    return actions, shift_actions(actions)
 
 
 def _policy_batch(roll: Rollout, cfg: AdversarialConfig, count: int, gen: torch.Generator) -> Rollout:
@@ -336,7 +355,9 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         t1 = time.perf_counter()
         # 2. critic
         for _ in range(cfg.critic_steps):
-            loss, s = critic_loss(m.critic, _expert_batch(expert, expert_prev, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
+            e_act, e_prev = (noisy_expert_actions(expert, m.policy, execute, gen) if cfg.expert_action_noise
+                             else (expert.actions, expert_prev))
+            loss, s = critic_loss(m.critic, _expert_batch(expert, e_act, e_prev, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
                                   objective, cfg.gradient_penalty)
             opt["critic"].zero_grad(set_to_none=True)
             loss.backward()

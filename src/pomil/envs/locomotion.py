@@ -106,6 +106,14 @@ def _model_path() -> str:
     return os.path.join(os.path.dirname(gm.__file__), "assets", "hopper.xml")
 
 
+def usable_cpus() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one, e.g. under taskset)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 class HopperSim:
     """N Hopper-v5 copies in NumPy (float64), all reset together.
 
@@ -134,7 +142,7 @@ class HopperSim:
         self.init_qpos = self.data[0].qpos.copy()
         self.init_qvel = self.data[0].qvel.copy()
         self.ctrl_range = self.model.actuator_ctrlrange.copy()
-        n_threads = threads if threads is not None else min(os.cpu_count() or 1, 16)
+        n_threads = threads if threads is not None else min(usable_cpus(), 16)
         n_threads = max(1, min(n_threads, num_envs // 8 or 1))
         self._chunks = [range(i, num_envs, n_threads) for i in range(n_threads)]
         self._pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
