@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import csv
 import tempfile
-import os
 import time
 from pathlib import Path
 
@@ -36,7 +35,7 @@ from any_task_speed import batched_speed, gym_vector_speed  # benchmarks/ is on 
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.expert import ExpertConfig, train_expert
 from pomil.config import from_dict
-from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs
+from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs, usable_cpus
 from pomil.reproduce import HOPPER_ADVERSARIAL
 
 
@@ -68,7 +67,7 @@ def main() -> None:
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
     kw = hopper_kwargs("forward", "paper")
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
-    print(f"torch {torch.__version__}, {os.cpu_count()} CPU cores, {torch.get_num_threads()} torch threads, device {args.device} ({gpu})")
+    print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, device {args.device} ({gpu})")
     rows = [("batched simulator (HopperSim)", batched_speed(HopperSim(n, kw), 256)),
             (f"gymnasium SyncVectorEnv x{n}", gym_vector_speed(HOPPER_ID, kw, n, 64)),
             ("gymnasium.make, one env", gym_single_speed(4000))]
