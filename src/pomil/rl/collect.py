@@ -5,7 +5,8 @@ Shared by every on-policy loop (adversarial learners, PPO experts).
 
 from __future__ import annotations
 
-from typing import Callable
+from contextlib import contextmanager
+from typing import Callable, Iterator
 
 import torch
 import torch.nn.functional as F
@@ -15,9 +16,21 @@ from pomil.nn.policy import GaussianPolicy
 from pomil.rl.storage import Rollout
 
 
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run a block with ``n`` torch intra-op threads (0: leave the setting alone)."""
+    before = torch.get_num_threads()
+    if n > 0:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 @torch.no_grad()
 def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int, execute: Callable[[torch.Tensor], torch.Tensor],
-            generator: torch.Generator, device: torch.device) -> tuple[Rollout, torch.Tensor, torch.Tensor, torch.Tensor]:
+            generator: torch.Generator, device: torch.device, threads: int = 1) -> tuple[Rollout, torch.Tensor, torch.Tensor, torch.Tensor]:
     """One episode in each of the env's N copies, a latent code per episode
     (none when ``num_codes`` is 0).  ``execute`` maps raw actions to executed
     ones (``pomil.envs.executed_actions_fn``).  Episodes may end at different
@@ -26,45 +39,51 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int, exec
     Returns (rollout, next_values (T, N) = V(s_{t+1}) with the final observation's
     value at the last step, code index per env (N,), the environment's own
     rewards (T, N), zero outside episodes: never used for learning by
-    imitation learners)."""
+    imitation learners).
+
+    The policy steps with ``threads`` torch threads (0: as set).  Its per-step
+    tensors are small, and with one thread torch's OpenMP workers do not spin
+    on the cores that a batched simulator's own threads step the physics on
+    (measured in ``benchmarks/hopper_speed.py``).  The values are computed after
+    the episodes, in one unroll of the value network over the whole rollout."""
     n = env.num_envs
     obs = env.reset()
     code_idx = torch.randint(max(num_codes, 1), (n,), generator=generator).to(device)
     codes = F.one_hot(code_idx, num_codes).float() if num_codes else torch.zeros(n, 0, device=device)
-    h_pi, h_v = policy.initial_state(n, device), value.initial_state(n, device)
-    h0_pi, h0_v = h_pi.clone(), h_v.clone()
+    h_pi, h0_v = policy.initial_state(n, device), value.initial_state(n, device)
+    h0_pi = h_pi.clone()
     prev = torch.zeros(n, policy.arch.act_dim, device=device)
     start = torch.ones(n, dtype=torch.bool, device=device)
     alive = torch.ones(n, dtype=torch.bool, device=device)
-    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "exec", "prev", "start", "logp", "value", "term", "trunc", "mask", "env_reward")}
-    while True:
-        dist, h_pi = policy.step(obs, prev, h_pi, start, codes)
-        action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=generator).to(device)
-        v, h_v = value.step(obs, prev, h_v, start, codes)
-        executed = execute(action)
-        rec["obs"].append(obs)
-        rec["act"].append(action)
-        rec["exec"].append(executed)
-        rec["prev"].append(prev * (~start).unsqueeze(-1))
-        rec["start"].append(start)
-        rec["logp"].append(dist.log_prob(action).sum(-1))
-        rec["value"].append(v)
-        rec["mask"].append(alive)
-        obs, env_reward, term, trunc = env.step(action)
-        rec["env_reward"].append(env_reward * alive)
-        rec["term"].append(term & alive)
-        rec["trunc"].append(trunc & alive)
-        alive = alive & ~(term | trunc)
-        prev, start = executed, torch.zeros_like(start)
-        if not bool(alive.any()):
-            break
-    v_final, _ = value.step(obs, prev, h_v, start, codes)
+    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "exec", "prev", "start", "logp", "term", "trunc", "mask", "env_reward")}
+    with torch_threads(threads):
+        while True:
+            dist, h_pi = policy.step(obs, prev, h_pi, start, codes)
+            action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=generator).to(device)
+            executed = execute(action)
+            rec["obs"].append(obs)
+            rec["act"].append(action)
+            rec["exec"].append(executed)
+            rec["prev"].append(prev * (~start).unsqueeze(-1))
+            rec["start"].append(start)
+            rec["logp"].append(dist.log_prob(action).sum(-1))
+            rec["mask"].append(alive)
+            obs, env_reward, term, trunc = env.step(action)
+            rec["env_reward"].append(env_reward * alive)
+            rec["term"].append(term & alive)
+            rec["trunc"].append(trunc & alive)
+            alive = alive & ~(term | trunc)
+            prev, start = executed, torch.zeros_like(start)
+            if not bool(alive.any()):
+                break
     st = {k: torch.stack(v) for k, v in rec.items()}
     T = st["obs"].shape[0]
-    next_values = torch.cat([st["value"][1:], v_final.unsqueeze(0)])
+    # V(s_0) ... V(s_T): the steps' observations, then the final one (its a_{t-1} the last executed action).
+    values, _ = value.unroll(torch.cat([st["obs"], obs.unsqueeze(0)]), torch.cat([st["prev"], prev.unsqueeze(0)]), h0_v,
+                             torch.cat([st["start"], start.unsqueeze(0)]), extra=codes.unsqueeze(0).expand(T + 1, -1, -1))
     roll = Rollout(
         observations=st["obs"], actions=st["act"], env_actions=st["exec"], prev_actions=st["prev"], starts=st["start"],
-        codes=codes.unsqueeze(0).expand(T, -1, -1), log_probs=st["logp"], values=st["value"],
+        codes=codes.unsqueeze(0).expand(T, -1, -1), log_probs=st["logp"], values=values[:-1],
         terminated=st["term"], truncated=st["trunc"], mask=st["mask"], h0_policy=h0_pi, h0_value=h0_v,
     )
-    return roll, next_values, code_idx, st["env_reward"]
+    return roll, values[1:], code_idx, st["env_reward"]
