@@ -229,3 +229,51 @@ def test_noisy_expert_actions_carry_the_policy_noise_and_stay_shifted(demos_path
     torch.testing.assert_close(quiet, expert.actions)
     train_adversarial(_cfg(demos_path, tmp_path / "noisy", iterations=2, expert_action_noise=True, eval_every=0))
     assert (tmp_path / "noisy" / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("demo_steps", [12, 9])
+def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
+    """The BC term's demonstrations share the PPO minibatch's encoder pass when their lengths
+    agree (12), and get their own otherwise (9): the loss and its gradients are those of
+    the separate computation, up to rounding."""
+    from pomil.algos.adversarial import policy_and_demo_features
+    from pomil.algos.bc import demo_bc_loss, demo_nll
+    from pomil.data import PaddedEpisodes
+    from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+
+    torch.manual_seed(0)
+    policy = GaussianPolicy(PolicyArch(2, 2, "gru", 16, 2))
+    codes = torch.eye(2)[torch.arange(6) % 2].expand(12, -1, -1)
+    b = as_rollout(torch.randn(12, 6, 2), torch.randn(12, 6, 2), codes)
+    b = b.with_(h0_policy=torch.randn(6, 16), starts=torch.zeros(12, 6, dtype=torch.bool))  # carries on from a stored state
+    mask = torch.ones(demo_steps, 10, dtype=torch.bool)
+    mask[demo_steps - 3:, :4] = False  # some shorter episodes
+    demos = PaddedEpisodes(torch.randn(demo_steps, 10, 2), torch.randn(demo_steps, 10, 2), mask)
+    prev = shift_actions(demos.actions)
+
+    def losses(joint: bool, mixture: bool):
+        policy.zero_grad()
+        g = torch.Generator().manual_seed(1)
+        if joint:
+            from pomil.algos.bc import demo_batch
+            demo, demo_prev = demo_batch(demos, prev, 8, g)
+            feats, demo_feats = policy_and_demo_features(policy, b, demo, demo_prev)
+            bc, _ = demo_nll(policy, demo_feats, demo, g, 2, mixture)
+        else:
+            feats, _ = policy.features(b.observations, b.prev_actions, b.h0_policy, b.starts)
+            bc, _ = demo_bc_loss(policy, demos, prev, 8, g, 2, mixture)
+        ppo_term = policy.dist(feats, b.codes).log_prob(b.actions).sum()
+        (ppo_term + bc).backward()
+        return ppo_term.detach(), bc.detach(), [p.grad.clone() for p in policy.parameters()]
+
+    for mixture in (False, True):
+        a, c = losses(True, mixture), losses(False, mixture)
+        torch.testing.assert_close(a[0], c[0])
+        torch.testing.assert_close(a[1], c[1])
+        for ga, gc in zip(a[2], c[2]):
+            torch.testing.assert_close(ga, gc, rtol=1e-4, atol=1e-6)
+
+
+def test_rollout_threads_must_not_be_negative(demos_path, tmp_path):
+    with pytest.raises(ValueError, match="rollout_threads"):
+        _cfg(demos_path, tmp_path / "bad", rollout_threads=-1)

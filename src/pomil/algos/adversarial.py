@@ -40,7 +40,7 @@ from typing import Any, Callable, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import bc_step, demo_bc_loss, most_likely_codes
+from pomil.algos.bc import bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
@@ -73,6 +73,8 @@ class AdversarialConfig(RunConfig):
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)")
     num_envs: int = option(64, "episodes collected per iteration")
+    rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on")
     num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)")
     hidden_size: int = option(128, "dense width and GRU cells of every network")
     lr: float = option(2e-4, "policy learning rate (Adam)")
@@ -121,8 +123,8 @@ class AdversarialConfig(RunConfig):
         super().__post_init__()
         check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs", "bc_init_batch",
                        "minibatches", "window_length", "eval_episodes")
-        if min(self.bc_init_iterations, self.posterior_init_iterations, self.policy_warmup_iterations) < 0:
-            raise ValueError("bc_init_iterations, posterior_init_iterations and policy_warmup_iterations must be >= 0")
+        if min(self.bc_init_iterations, self.posterior_init_iterations, self.policy_warmup_iterations, self.rollout_threads) < 0:
+            raise ValueError("bc_init_iterations, posterior_init_iterations, policy_warmup_iterations and rollout_threads must be >= 0")
         if self.gradient_penalty < 0 or self.weight_clip < 0 or self.bc_weight < 0:
             raise ValueError("gradient_penalty, weight_clip and bc_weight must be >= 0")
         if self.num_codes in (0, 1) or self.num_codes < -1:
@@ -137,10 +139,15 @@ class Modules:
     posterior: BeliefHead | None
 
 
-def _first_step_starts(mask: torch.Tensor) -> torch.Tensor:
-    starts = torch.zeros_like(mask)
-    starts[0] = True
-    return starts
+def side_by_side(unroll: Callable[..., torch.Tensor], first: tuple[torch.Tensor, ...],
+                 second: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``unroll(*inputs)`` on two blocks of time-major (T, N, ...) inputs: once over both
+    blocks' columns side by side when their lengths agree, else once each.  Same numbers
+    up to rounding; one pass with twice the columns is cheaper on a CPU than two."""
+    if first[0].shape[0] != second[0].shape[0]:
+        return unroll(*first), unroll(*second)
+    out = unroll(*(torch.cat(pair, dim=1) for pair in zip(first, second)))
+    return out[:, :first[0].shape[1]], out[:, first[0].shape[1]:]
 
 
 # -------------------------------------------------------------- critic, posterior
@@ -160,7 +167,7 @@ def _expert_batch(expert: PaddedEpisodes, actions: torch.Tensor, prev: torch.Ten
     t_idx, e = t_idx.to(dev), e.to(dev)
     ei = e.unsqueeze(0).expand_as(t_idx)
     mask = expert.mask[t_idx, ei]
-    return expert.observations[t_idx, ei], prev[t_idx, ei], actions[t_idx, ei], _first_step_starts(mask), mask
+    return expert.observations[t_idx, ei], prev[t_idx, ei], actions[t_idx, ei], first_step_starts(mask), mask
 
 
 def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy, execute: Callable[[torch.Tensor], torch.Tensor],
@@ -193,13 +200,8 @@ def critic_loss(
     def score(obs, prev, act, starts):
         return critic.unroll(obs, prev, critic.initial_state(obs.shape[1], obs.device), starts, extra=act)[0]
 
-    e_in = (e_obs, e_prev, e_act, e_starts)
-    p_in = (policy.observations, policy.prev_actions, policy.executed_actions, policy.starts)
-    if e_obs.shape[0] == policy.num_steps:  # one unroll over expert and policy columns side by side
-        f = score(*(torch.cat(pair, dim=1) for pair in zip(e_in, p_in)))
-        f_exp, f_pol = f[:, :e_obs.shape[1]], f[:, e_obs.shape[1]:]
-    else:
-        f_exp, f_pol = score(*e_in), score(*p_in)
+    f_exp, f_pol = side_by_side(score, (e_obs, e_prev, e_act, e_starts),
+                                (policy.observations, policy.prev_actions, policy.executed_actions, policy.starts))
     if objective == "wasserstein":
         w = masked_mean(f_exp, e_mask) - masked_mean(f_pol, policy.mask)
         loss = -w
@@ -349,7 +351,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         stats: dict[str, float] = {}
         # 1. rollout
         t0 = time.perf_counter()
-        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device)
+        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device, cfg.rollout_threads)
         stats["env/true_return"] = env_rewards.sum(0).mean().item()
         steps_done += roll.num_steps * roll.num_envs
         t1 = time.perf_counter()
@@ -395,14 +397,19 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             for b in batches:
                 if frozen is not None:
                     b = _window_behaviour(b, *frozen)
-                dist, _ = m.policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts, codes=b.codes)
+                if cfg.bc_weight > 0:  # the BC term's demonstrations go through the policy's encoder with the minibatch
+                    demo, demo_prev = demo_batch(expert, expert_prev, cfg.bc_init_batch, gen)
+                    feats, demo_feats = policy_and_demo_features(m.policy, b, demo, demo_prev)
+                else:
+                    feats, _ = m.policy.features(b.observations, b.prev_actions, b.h0_policy, b.starts)
+                dist = m.policy.dist(feats, b.codes)
                 new_v, _ = m.value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
                 loss, s = ppo_loss(
                     dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v, b.values,
                     b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, cfg.value_clip or None, 0.5, cfg.ent_coef,
                 )
                 if cfg.bc_weight > 0:
-                    bc, bc_stats = demo_bc_loss(m.policy, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture)
+                    bc, bc_stats = demo_nll(m.policy, demo_feats, demo, gen, num_codes, mixture)
                     loss = loss + cfg.bc_weight * bc
                     s["ppo/bc_nll"] = bc_stats["bc/nll"]
                 opt["policy"].zero_grad(set_to_none=True)
@@ -435,6 +442,18 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     return ckpt_path
 
 
+def policy_and_demo_features(policy: GaussianPolicy, b: Rollout, demo: PaddedEpisodes,
+                              demo_prev: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The policy encoder's features on a PPO minibatch (from its stored initial state) and on
+    whole demonstration episodes (from a zero state), side by side when their lengths agree."""
+    def features(obs, prev, starts, h0):  # h0 as (1, N, H), so that every input has its columns on dim 1
+        return policy.features(obs, prev, h0[0], starts)[0]
+
+    demo_h0 = policy.initial_state(demo.mask.shape[1], demo.mask.device).unsqueeze(0)
+    return side_by_side(features, (b.observations, b.prev_actions, b.starts, b.h0_policy.unsqueeze(0)),
+                        (demo.observations, demo_prev, first_step_starts(demo.mask), demo_h0))
+
+
 @torch.no_grad()
 def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> Rollout:
     dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts, codes=b.codes)
@@ -461,7 +480,7 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
         codes = most_likely_codes(m.policy, expert, expert_prev)
         stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
         post_opt = torch.optim.Adam(m.posterior.parameters(), lr=cfg.bc_init_lr)
-        starts = _first_step_starts(expert.mask)
+        starts = first_step_starts(expert.mask)
         for _ in range(cfg.posterior_init_iterations):
             idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
             loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],

@@ -53,30 +53,58 @@ def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, ma
 
     ``prev_actions`` (a_{t-1} as the environment carried it out) defaults to
     the shifted ``actions``; ``codes`` (B, K) one-hot, for a policy with codes."""
+    feats = episode_features(policy, obs, shift_actions(actions) if prev_actions is None else prev_actions, mask)
+    return _nll(policy, policy.dist(feats, None if codes is None else codes.expand(mask.shape[0], -1, -1)), actions, mask)
+
+
+def episode_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The policy's encoder over a (T, B) block of whole episodes, from a zero state."""
+    return policy.features(obs, prev_actions, policy.initial_state(mask.shape[1], mask.device), first_step_starts(mask))[0]
+
+
+def first_step_starts(mask: torch.Tensor) -> torch.Tensor:
+    """Episode starts (T, B) of whole episodes: the first step of each column."""
     starts = torch.zeros_like(mask)
     starts[0] = True
-    h0 = policy.initial_state(obs.shape[1], obs.device)
-    dist, _ = policy.unroll(obs, shift_actions(actions) if prev_actions is None else prev_actions, h0, starts, codes=codes)
-    m = mask.to(obs.dtype)
+    return starts
+
+
+def _nll(policy: GaussianPolicy, dist, actions: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    m = mask.to(actions.dtype)
     nll = -(dist.log_prob(actions).sum(-1) * m).sum() / m.sum()
     mse = (((dist.mean - actions) ** 2).sum(-1) * m).sum() / m.sum()
     return nll, {"bc/nll": nll.item(), "bc/action_mse": mse.item(), "bc/log_std": policy.log_std.mean().item()}
 
 
-def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
-                 generator: torch.Generator, num_codes: int = 0, mixture: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
-    """Behaviour-cloning loss on a random batch of whole demonstration episodes.  A policy with
-    latent codes gets a random code per episode (demonstrations carry none), or, with
-    ``mixture``, the codes' mixture likelihood (:func:`mixture_bc_loss`)."""
+def demo_batch(data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
+               generator: torch.Generator) -> tuple[PaddedEpisodes, torch.Tensor]:
+    """A random batch of whole demonstration episodes and their previous actions."""
     n_ep = data.mask.shape[1]
     idx = torch.randint(n_ep, (min(batch_episodes, n_ep),), generator=generator).to(data.mask.device)
-    batch = data.select(idx)
+    return data.select(idx), prev_actions[:, idx]
+
+
+def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisodes, generator: torch.Generator,
+             num_codes: int = 0, mixture: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """Behaviour-cloning loss of a batch of whole demonstration episodes from the policy's encoder
+    features on them (:func:`episode_features`).  A policy with latent codes gets a random code per
+    episode (demonstrations carry none), or, with ``mixture``, the codes' mixture likelihood
+    (:func:`mixture_bc_loss`)."""
     if mixture:
-        loss, _, stats = mixture_bc_loss(policy, batch, prev_actions[:, idx])
+        loss, _, stats = _mixture_nll(policy, policy.dist_every_code(features), batch)
         return loss, stats
-    codes = (F.one_hot(torch.randint(num_codes, (len(idx),), generator=generator), num_codes).float().to(idx.device)
+    b = batch.mask.shape[1]
+    codes = (F.one_hot(torch.randint(num_codes, (b,), generator=generator), num_codes).float().to(features.device)
              if num_codes else None)
-    return bc_loss(policy, batch.observations, batch.actions, batch.mask, prev_actions[:, idx], codes)
+    return _nll(policy, policy.dist(features, None if codes is None else codes.expand(features.shape[0], -1, -1)),
+                batch.actions, batch.mask)
+
+
+def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
+                 generator: torch.Generator, num_codes: int = 0, mixture: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """Behaviour-cloning loss (:func:`demo_nll`) on a random batch of whole demonstration episodes."""
+    batch, prev = demo_batch(data, prev_actions, batch_episodes, generator)
+    return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator, num_codes, mixture)
 
 
 def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
@@ -99,12 +127,13 @@ def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: 
     log-likelihoods): the code prior is uniform, and without balancing the code that
     starts out slightly better takes every episode and the others never learn.
     Returns (loss per step, responsibilities, stats)."""
-    mask = data.mask
-    starts = torch.zeros_like(mask)
-    starts[0] = True
-    dist = policy.unroll_every_code(data.observations, prev_actions, policy.initial_state(mask.shape[1], mask.device), starts)
-    m = mask.to(data.observations.dtype)
-    ll = (dist.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)  # (K, B): each episode under each code
+    feats = episode_features(policy, data.observations, prev_actions, data.mask)
+    return _mixture_nll(policy, policy.dist_every_code(feats), data)
+
+
+def _mixture_nll(policy: GaussianPolicy, dist_every_code, data: PaddedEpisodes) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    m = data.mask.to(data.observations.dtype)
+    ll = (dist_every_code.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)  # (K, B): each episode under each code
     resp = balanced_responsibilities(ll.detach())
     loss = -(resp * ll).sum() / m.sum()
     return loss, resp, {"bc/nll": loss.item(), "bc/responsibility_max": resp.max(0).values.mean().item(),

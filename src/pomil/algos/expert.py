@@ -48,6 +48,8 @@ class ExpertConfig(RunConfig):
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)")
     num_envs: int = option(64, "environment copies stepped together")
+    rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on")
     hidden_size: int = option(64, "width of the policy's and value's hidden layers")
     lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)")
     epochs: int = option(10, "PPO epochs per iteration")
@@ -67,6 +69,8 @@ class ExpertConfig(RunConfig):
         check_positive(self, "iterations", "num_envs", "hidden_size", "epochs", "minibatches")
         if self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.rollout_threads < 0:
+            raise ValueError(f"rollout_threads must be >= 0, got {self.rollout_threads}")
 
     def env_settings(self) -> tuple[dict, list[int] | None]:
         """(constructor keywords, observation indices or None); ValueError when the env rejects them."""
@@ -145,7 +149,7 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
     for it in range(start + 1, cfg.iterations + 1):
         for group in opt.param_groups:
             group["lr"] = cfg.lr * (1.0 - (it - 1) / cfg.iterations)
-        roll, next_values, _, raw_rewards = collect(env, policy, value, 0, execute, gen, device)
+        roll, next_values, _, raw_rewards = collect(env, policy, value, 0, execute, gen, device, cfg.rollout_threads)
         steps_done += int(roll.mask.sum())
         # Rewards divided by the running std of the discounted return.
         reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))

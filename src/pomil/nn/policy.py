@@ -47,7 +47,8 @@ class GaussianPolicy(nn.Module):
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
         return self.encoder.initial_state(batch, device)
 
-    def _dist(self, features: torch.Tensor, codes: torch.Tensor | None) -> Normal:
+    def dist(self, features: torch.Tensor, codes: torch.Tensor | None = None) -> Normal:
+        """The action distribution from encoder features (..., feat) and one-hot codes (..., K)."""
         if self.code_embed is not None:  # codes are ignored by a policy without them
             if codes is None:
                 raise ValueError("this policy has latent codes: pass one-hot codes")
@@ -60,25 +61,34 @@ class GaussianPolicy(nn.Module):
     def step(self, obs, prev_action, h, start, codes=None) -> tuple[Normal, torch.Tensor]:
         """One step for N environments: obs (N, obs_dim) ... -> (dist, new h)."""
         feats, h = self.encoder.step(obs, prev_action, h, start)
-        return self._dist(feats, codes), h
+        return self.dist(feats, codes), h
+
+    def features(self, obs, prev_actions, h0, starts) -> tuple[torch.Tensor, torch.Tensor]:
+        """The encoder over a (T, N) block: (features (T, N, feat), final state)."""
+        return self.encoder.unroll(obs, prev_actions, h0, starts)
 
     def unroll(self, obs, prev_actions, h0, starts, codes=None) -> tuple[Normal, torch.Tensor]:
         """A (T, N) block of steps; codes (N, K) or (T, N, K)."""
-        feats, h = self.encoder.unroll(obs, prev_actions, h0, starts)
+        feats, h = self.features(obs, prev_actions, h0, starts)
         if codes is not None and codes.ndim == 2:
             codes = codes.unsqueeze(0).expand(feats.shape[0], -1, -1)
-        return self._dist(feats, codes), h
+        return self.dist(feats, codes), h
+
+    def dist_every_code(self, features: torch.Tensor) -> Normal:
+        """The action distribution under each of the K codes: batch shape (K, *features.shape[:-1], act_dim)."""
+        if self.code_embed is None:
+            raise ValueError("this policy has no latent codes")
+        k = self.arch.num_codes
+        lead = features.shape[:-1]
+        codes = torch.eye(k, device=features.device).view(k, *(1,) * len(lead), k).expand(k, *lead, k)
+        return self.dist(features.unsqueeze(0).expand(k, *features.shape), codes)
 
     def unroll_every_code(self, obs, prev_actions, h0, starts) -> Normal:
         """The action distribution under each of the K codes for a (T, N) block:
         batch shape (K, T, N, act_dim).  The encoder runs once (the code enters after it)."""
         if self.code_embed is None:
             raise ValueError("this policy has no latent codes")
-        feats, _ = self.encoder.unroll(obs, prev_actions, h0, starts)
-        k = self.arch.num_codes
-        codes = torch.eye(k, device=feats.device).view(k, 1, 1, k).expand(k, *feats.shape[:2], k)
-        return self._dist(feats.unsqueeze(0).expand(k, -1, -1, -1), codes)
-
+        return self.dist_every_code(self.features(obs, prev_actions, h0, starts)[0])
 
 def shift_actions(actions: torch.Tensor) -> torch.Tensor:
     """Previous actions a_{t-1} for a time-major (T, N, act_dim) block, zero at t = 0."""
