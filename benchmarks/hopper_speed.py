@@ -11,10 +11,13 @@ Prints env-steps/s of:
 5. InfoGAIL-POMDP training on the shipped demonstrations with the Hopper
    recipe of ``pomil reproduce hopper`` (everything included: rollout,
    critic, posterior, PPO with its BC term; warm start and policy warm-up off
-   so that only the loop is timed).
+   so that only the loop is timed);
+6. with ``--rollout-threads 1,0``: item 5 once per setting of the
+   ``rollout_threads`` option (1, the default: the rollout's policy steps on one
+   torch thread; 0: torch's own thread count), to show what it is worth.
 
     .venv/bin/python benchmarks/hopper_speed.py [--num-envs 256] [--iterations 3] [--device cpu]
-        [--train-envs 256,1024,4096]
+        [--train-envs 256,1024,4096] [--rollout-threads 1,0]
 
 ``--train-envs`` times InfoGAIL-POMDP training once per number of parallel
 environments (for a GPU: many environments, large batches).
@@ -62,9 +65,11 @@ def main() -> None:
     ap.add_argument("--demos", default="data/hopper-paper.npz")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--train-envs", default="", help="comma-separated env counts for 5 (default: --num-envs)")
+    ap.add_argument("--rollout-threads", default="1", help="comma-separated rollout_threads settings for 5 (0: torch's own)")
     args = ap.parse_args()
     n = args.num_envs
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
+    settings = [int(v) for v in args.rollout_threads.split(",")]
     kw = hopper_kwargs("forward", "paper")
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
     print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, device {args.device} ({gpu})")
@@ -76,18 +81,21 @@ def main() -> None:
         train_expert(ExpertConfig(out=f"{tmp}/expert", iterations=args.iterations, progress=False, log_every=1, device=args.device))
         rows.append(("expert PPO training (64 envs, MLP)", float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
         for m in train_envs:
-            values = {**HOPPER_ADVERSARIAL, "learner": "infogail-pomdp", "demos": args.demos, "out": f"{tmp}/ip{m}",
-                      "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0,
-                      "log_every": 1, "progress": False, "device": args.device, "num_envs": m}
-            train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
-            row = last_row(Path(tmp) / f"ip{m}")
-            rows.append((f"InfoGAIL-POMDP training ({m} envs, all updates)", float(row["time/env_steps_per_s"])))
-            shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
-            share_lines.append(f"InfoGAIL-POMDP time shares, {m} envs: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
+            for threads in settings:
+                run = Path(tmp) / f"ip{m}-{threads}"
+                values = {**HOPPER_ADVERSARIAL, "learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
+                          "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0,
+                          "log_every": 1, "progress": False, "device": args.device, "num_envs": m, "rollout_threads": threads}
+                train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
+                row = last_row(run)
+                what = f"InfoGAIL-POMDP training ({m} envs, all updates{f', rollout_threads {threads}' if len(settings) > 1 else ''})"
+                rows.append((what, float(row["time/env_steps_per_s"])))
+                shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
+                share_lines.append(f"time shares, {what}: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
     base = rows[1][1]
-    print(f"{'what':52s} {'env-steps/s':>12s} {'vs SyncVectorEnv':>17s}")
+    print(f"{'what':70s} {'env-steps/s':>12s} {'vs SyncVectorEnv':>17s}")
     for name, v in rows:
-        print(f"{name:52s} {v:12,.0f} {v / base:16.2f}x")
+        print(f"{name:70s} {v:12,.0f} {v / base:16.2f}x")
     print("\n".join(share_lines))
 
 
