@@ -54,7 +54,7 @@ def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, ma
     ``prev_actions`` (a_{t-1} as the environment carried it out) defaults to
     the shifted ``actions``; ``codes`` (B, K) one-hot, for a policy with codes."""
     feats = episode_features(policy, obs, shift_actions(actions) if prev_actions is None else prev_actions, mask)
-    return _nll(policy, policy.dist(feats, None if codes is None else codes.expand(mask.shape[0], -1, -1)), actions, mask)
+    return _nll(policy, policy.dist(feats, codes), actions, mask)
 
 
 def episode_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -96,8 +96,7 @@ def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisod
     b = batch.mask.shape[1]
     codes = (F.one_hot(torch.randint(num_codes, (b,), generator=generator), num_codes).float().to(features.device)
              if num_codes else None)
-    return _nll(policy, policy.dist(features, None if codes is None else codes.expand(features.shape[0], -1, -1)),
-                batch.actions, batch.mask)
+    return _nll(policy, policy.dist(features, codes), batch.actions, batch.mask)
 
 
 def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,

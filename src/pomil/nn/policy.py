@@ -48,7 +48,8 @@ class GaussianPolicy(nn.Module):
         return self.encoder.initial_state(batch, device)
 
     def dist(self, features: torch.Tensor, codes: torch.Tensor | None = None) -> Normal:
-        """The action distribution from encoder features (..., feat) and one-hot codes (..., K)."""
+        """The action distribution from encoder features (..., feat) and one-hot codes (..., K)
+        that broadcast against them (e.g. (N, K) codes for (T, N, feat) features)."""
         if self.code_embed is not None:  # codes are ignored by a policy without them
             if codes is None:
                 raise ValueError("this policy has latent codes: pass one-hot codes")
@@ -86,9 +87,8 @@ class GaussianPolicy(nn.Module):
     def unroll_every_code(self, obs, prev_actions, h0, starts) -> Normal:
         """The action distribution under each of the K codes for a (T, N) block:
         batch shape (K, T, N, act_dim).  The encoder runs once (the code enters after it)."""
-        if self.code_embed is None:
-            raise ValueError("this policy has no latent codes")
         return self.dist_every_code(self.features(obs, prev_actions, h0, starts)[0])
+
 
 def shift_actions(actions: torch.Tensor) -> torch.Tensor:
     """Previous actions a_{t-1} for a time-major (T, N, act_dim) block, zero at t = 0."""
