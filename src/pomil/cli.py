@@ -322,7 +322,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from pomil.reproduce import CirclesReproConfig, HopperReproConfig, reproduce_circles, reproduce_hopper
+    from pomil.reproduce import (
+        CirclesModesConfig, CirclesReproConfig, HopperReproConfig, reproduce_circles, reproduce_circles_modes, reproduce_hopper,
+    )
 
     if args.experiment == "tasks":
         cfg = config_from_args(HopperReproConfig, args)
@@ -333,6 +335,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         reproduce_hopper(cfg)
     elif args.experiment == "hopper":
         reproduce_hopper(config_from_args(HopperReproConfig, args))
+    elif args.experiment == "circles-modes":
+        reproduce_circles_modes(config_from_args(CirclesModesConfig, args))
     else:
         reproduce_circles(config_from_args(CirclesReproConfig, args))
     return 0
@@ -432,13 +436,17 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(sw, SweepConfig)
     sw.set_defaults(func=cmd_sweep)
 
-    from pomil.reproduce import CirclesReproConfig, HopperReproConfig
+    from pomil.reproduce import CirclesModesConfig, CirclesReproConfig, HopperReproConfig
 
     rp = sub.add_parser("reproduce", help="run a paper experiment end to end")
     rp_sub = rp.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
     rc = rp_sub.add_parser("circles", help="demos, train every learner over seeds, evaluate, table and figure")
     add_config_flags(rc, CirclesReproConfig)
     rc.set_defaults(func=cmd_reproduce)
+    rm = rp_sub.add_parser("circles-modes", help="default-settings InfoGAIL-POMDP on circle sets of 2 to 6 modes over seeds: "
+                                                 "success counts and per-seed figures")
+    add_config_flags(rm, CirclesModesConfig)
+    rm.set_defaults(func=cmd_reproduce)
     rh = rp_sub.add_parser("hopper", help="Figure 2c: every learner over seeds on the shipped Hopper demos, table and curves")
     add_config_flags(rh, HopperReproConfig)
     rh.set_defaults(func=cmd_reproduce)

@@ -79,13 +79,22 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 
 def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T:
-    """Build ``cls`` from a dict, rejecting unknown keys and coercing types."""
+    """Build ``cls`` from a dict, rejecting unknown keys and coercing types.
+
+    A config class with named presets (a ``PRESETS`` table of ``{name: {field: value}}``
+    and a ``preset`` field) gets the named preset's values first; the dict's own
+    values override them."""
     names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
     unknown = sorted(set(values) - set(names))
     if unknown:
         raise PomilError(
             f"{source}: unknown key(s) {unknown}; valid keys are: {', '.join(names)}"
         )
+    presets: dict[str, dict[str, Any]] = getattr(cls, "PRESETS", {})
+    if presets and values.get("preset") is not None:
+        if values["preset"] not in presets:
+            raise PomilError(f"config key 'preset': expected one of {list(presets)}, got {values['preset']!r}")
+        values = {**presets[values["preset"]], **values}
     hints = _resolved_types(cls)
     coerced = {k: _coerce(v, hints[k], k) for k, v in values.items()}
     try:

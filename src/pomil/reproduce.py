@@ -32,7 +32,7 @@ import numpy as np
 from pomil.api import TrainedPolicy
 from pomil.config import option, to_dict
 from pomil.data import Demonstrations, atomic_write
-from pomil.envs.circles import make_spec
+from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
 from pomil.errors import PomilError
 from pomil.eval.plots import figure1
 from pomil.eval.rollout import evaluate_circles
@@ -240,6 +240,132 @@ def plot_from_rollouts(rollouts_path: Path, figure_path: Path) -> None:
         names = list(dict.fromkeys(k.split("/")[0] for k in r.files))
         panels = [(n, r[f"{n}/positions"], r[f"{n}/groups"], "mode" if n == "experts" else "code") for n in names]
     figure1(panels, figure_path)
+
+
+# ================================================================ circles-modes
+def _through(*circles: tuple[float, float, int]) -> tuple[Circle, ...]:
+    return tuple(Circle.through_origin(*c) for c in circles)
+
+
+# The cases of ``pomil reproduce circles-modes``: the two presets and three sets
+# built through the Python API, each with different radii and directions.  In
+# ``five`` two circles share their centre's ray (internally tangent at the origin)
+# and are travelled the same way: they start in the same direction and part only
+# by their curvature.  In every set, pairs of circles share the tangent at the origin.
+MODES_CASES: dict[str, tuple[Circle, ...]] = {
+    "two": circles_preset("two"),
+    "four": circles_preset("four"),
+    "three": _through((90, 4.0, 1), (210, 5.0, -1), (330, 6.0, 1)),
+    "five": _through((90, 3.0, 1), (90, 6.0, 1), (270, 5.0, -1), (0, 4.0, 1), (180, 4.0, -1)),
+    "six": _through((90, 3.0, 1), (90, 6.0, -1), (270, 4.0, -1), (270, 7.0, 1), (0, 5.0, 1), (180, 5.0, -1)),
+}
+# A seed succeeds when every code is >= 95% one mode, every mode is some code's and NMI >= 0.9.
+MODES_SUCCESS = {"min_purity": 0.95, "nmi": 0.9}
+
+
+@dataclass(frozen=True)
+class CirclesModesConfig(RayOptions):
+    out: str = option("runs/results/circles-modes", "results directory (metrics.json, table.md); "
+                                                    "the committed results are results/circles-modes")
+    runs: str = option("runs/circles-modes", "where each case's demonstrations and each run's checkpoint and logs go")
+    cases: tuple[str, ...] = option(tuple(MODES_CASES), f"comma-separated cases: {', '.join(MODES_CASES)}")
+    seeds: int = option(10, "training seeds per case (0 .. seeds-1)")
+    learner: Literal["infogail", "infogail-pomdp"] = option("infogail-pomdp", "the learner, with its default settings")
+    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
+    episodes_per_mode: int = option(100, "demonstration episodes per mode (recorded with seed 0)")
+    episodes_per_code: int = option(100, "evaluation rollouts per latent code")
+    progress: bool = option(True, "show progress bars")
+
+    def __post_init__(self) -> None:
+        if self.seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
+        unknown = sorted(set(self.cases) - set(MODES_CASES))
+        if unknown or not self.cases:
+            raise ValueError(f"unknown cases {unknown}; choose from {list(MODES_CASES)}")
+
+
+def _modes_job(cfg: CirclesModesConfig, case: str, seed: int) -> dict[str, Any]:
+    from pomil.algos.adversarial import AdversarialConfig, train_adversarial
+    from pomil.config import from_dict, load_config_file
+
+    t0 = time.perf_counter()
+    run_dir = Path(cfg.runs) / case / f"seed{seed}"
+    values = load_config_file(cfg.adversarial_config) if cfg.adversarial_config else {}
+    values.update(learner=cfg.learner, demos=str(Path(cfg.runs) / f"{case}.npz"), out=str(run_dir), seed=seed,
+                  progress=cfg.progress)
+    ckpt = train_adversarial(from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "config"))
+    wall = time.perf_counter() - t0
+    metrics, _ = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
+    metrics.update(checkpoint=str(ckpt), train_seed=seed, success=modes_success(metrics))
+    return {"metrics": metrics, "wall_s": wall}
+
+
+def modes_success(m: dict[str, Any]) -> bool:
+    """Every code >= 95% in one mode, every mode covered, NMI >= 0.9."""
+    return (m["min_purity"] >= MODES_SUCCESS["min_purity"] and m["nmi"] >= MODES_SUCCESS["nmi"]
+            and m["modes_covered"] == len(m["per_code"][0]["mode_share"]))
+
+
+def modes_table(results: dict[str, Any]) -> str:
+    lines = ["| case | modes | successes | min purity | mean purity | modes covered | NMI | none share | wall s / seed |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for case, r in results["cases"].items():
+        runs = r["runs"]
+        ms = lambda k, p=2: f"{np.mean([x[k] for x in runs]):.{p}f} ± {np.std([x[k] for x in runs]):.{p}f}"  # noqa: E731
+        lines.append(f"| {case} | {r['modes']} | {sum(x['success'] for x in runs)}/{len(runs)} | {ms('min_purity')} | "
+                     f"{ms('mean_purity')} | {ms('modes_covered', 1)} | {ms('nmi')} | {ms('overall_none_share')} | "
+                     f"{np.mean(r['wall_s']):.0f} |")
+    lines += ["", f"{results['learner']} with its default settings; mean ± std over {results['seeds']} seeds, "
+              f"{results['episodes_per_code']} stochastic rollouts per code. A seed succeeds when its min purity is "
+              f">= {MODES_SUCCESS['min_purity']}, every mode is covered and NMI >= {MODES_SUCCESS['nmi']}."]
+    return "\n".join(lines) + "\n"
+
+
+def reproduce_circles_modes(cfg: CirclesModesConfig) -> dict[str, Any]:
+    """Default-settings training on circle sets of 2 to 6 modes, over seeds: success counts and per-seed figures."""
+    t_start = time.perf_counter()
+    for case in cfg.cases:  # every case's demonstrations, recorded once (seed 0)
+        path = Path(cfg.runs) / f"{case}.npz"
+        if not path.exists():
+            spec = CirclesSpec(MODES_CASES[case])
+            record_circles_demos(spec, cfg.episodes_per_mode * spec.num_modes, seed=0).save(path)
+    if cfg.ray:  # workers may start elsewhere: every path absolute
+        absolute = {"runs": str(Path(cfg.runs).resolve())}
+        if cfg.adversarial_config:
+            absolute["adversarial_config"] = str(Path(cfg.adversarial_config).resolve())
+        cfg = dataclasses.replace(cfg, progress=False, **absolute)
+    from pomil.parallel import run_jobs
+
+    keys = [(case, seed) for case in cfg.cases for seed in range(cfg.seeds)]
+
+    def report(r, n, total) -> None:
+        m = r.value["metrics"]
+        print(f"[{n}/{total}] {r.name}: min purity {m['min_purity']:.2f}, modes covered {m['modes_covered']}, "
+              f"NMI {m['nmi']:.2f}{'' if m['success'] else ' (below target)'} ({r.wall_s:.0f} s)", flush=True)
+
+    done = run_jobs(_modes_job, [(cfg, c, s) for c, s in keys], [f"[{c}] seed {s}" for c, s in keys],
+                    ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report)
+    by_key = {key: r.value for key, r in zip(keys, done)}
+    results: dict[str, Any] = {
+        "experiment": "circles-modes", "config": to_dict(cfg), "learner": cfg.learner, "seeds": cfg.seeds,
+        "episodes_per_code": cfg.episodes_per_code, "success_criteria": MODES_SUCCESS,
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform()}, "cases": {},
+    }
+    for case in cfg.cases:
+        runs = [by_key[case, s]["metrics"] for s in range(cfg.seeds)]
+        results["cases"][case] = {
+            "modes": len(MODES_CASES[case]), "circles": CirclesSpec(MODES_CASES[case]).to_dict()["circles"],
+            "successes": sum(r["success"] for r in runs), "runs": runs,
+            "wall_s": [by_key[case, s]["wall_s"] for s in range(cfg.seeds)],
+        }
+    results["wall_time_s"] = time.perf_counter() - t_start
+    out = Path(cfg.out)
+    write_json(out / "metrics.json", results)
+    table = modes_table(results)
+    atomic_write(out / "table.md", lambda f: f.write(table.encode()))
+    print(table)
+    print(f"wrote {out}/metrics.json, table.md in {results['wall_time_s']:.0f} s")
+    return results
 
 
 # ====================================================================== Hopper

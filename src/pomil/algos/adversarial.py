@@ -35,7 +35,7 @@ import copy
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable, ClassVar, Literal
 
 import torch
 import torch.nn.functional as F
@@ -60,7 +60,7 @@ from pomil.training import (
 )
 
 LEARNERS = ("gail", "infogail", "infogail-pomdp")
-PRESETS = {
+LEARNER_KINDS = {  # what each learner is made of
     "gail": {"encoder": "mlp", "codes": False, "critic_objective": "gan"},
     "infogail": {"encoder": "mlp", "codes": True, "critic_objective": "wasserstein"},
     "infogail-pomdp": {"encoder": "gru", "codes": True, "critic_objective": "wasserstein"},
@@ -71,24 +71,27 @@ PRESETS = {
 class AdversarialConfig(RunConfig):
     learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp", "which learner (set by the subcommand)")
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)")
-    num_envs: int = option(64, "episodes collected per iteration")
+    preset: Literal["default", "paper-text"] = option("default", "named settings under the config file and flags: default "
+                                                      "(pomil's measured recipe) or paper-text (the paper's text, see PRESETS)")
+    iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO)")
+    num_envs: int = option(256, "episodes collected per iteration")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on")
     num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)")
     hidden_size: int = option(128, "dense width and GRU cells of every network")
-    lr: float = option(2e-4, "policy learning rate (Adam)")
+    lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)")
     shared_value_encoder: bool = option(False, "value head on the policy's encoder instead of its own (measured: see README)")
-    lr_critic: float = option(2e-4, "critic learning rate")
+    lr_critic: float = option(5e-4, "critic learning rate")
     lr_posterior: float = option(2e-4, "posterior learning rate (Adam)")
-    critic_optimizer: Literal["rmsprop", "adam"] = option("rmsprop", "rmsprop (paper text) or adam (paper code)")
+    critic_optimizer: Literal["rmsprop", "adam"] = option("adam", "adam (the paper's code) or rmsprop (its text)")
     critic_steps: int = option(3, "critic updates per iteration")
     critic_batch: int = option(64, "expert and policy episodes per critic update")
     expert_action_noise: bool = option(False, "add the policy's current action noise to the demonstrations' actions the critic "
                                        "sees, so that it cannot tell deterministic experts from the policy by action jitter")
-    weight_clip: float = option(0.01, "clip Wasserstein critic weights to +-this after each update (0: off; never for GAIL's GAN critic)")
-    gradient_penalty: float = option(0.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam")
+    weight_clip: float = option(0.0, "clip Wasserstein critic weights to +-this after each update (0: off; the paper's text: "
+                                     "0.01; never for GAIL's GAN critic)")
+    gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam")
     posterior_steps: int = option(1, "posterior updates per iteration")
     mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)")
     ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss")
@@ -101,23 +104,35 @@ class AdversarialConfig(RunConfig):
     minibatches: int = option(4, "PPO minibatches per epoch")
     update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
     window_length: int = option(8, "steps per window in window mode")
-    bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)")
+    bc_init_iterations: int = option(3000, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)")
     bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start")
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step")
-    bc_init_codes: Literal["random", "mixture"] = option("random", "codes in the warm start: random per episode (InfoGAIL), or "
+    bc_init_codes: Literal["random", "mixture"] = option("mixture", "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes (mixture likelihood)")
     posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
                                                  "each episode labelled with its most likely code")
     log_std_init: float = option(-1.0, "initial log std of the policy")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
-    bc_weight: float = option(0.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
+    bc_weight: float = option(10.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
                                     "policy's PPO loss (keeps the policy near the demonstrations; 0: off)")
-    policy_warmup_iterations: int = option(0, "first iterations in which only the critic, posterior and value learn "
+    policy_warmup_iterations: int = option(5, "first iterations in which only the critic, posterior and value learn "
                                               "(the warm-started policy waits for a trained value and critic)")
-    eval_every: int = option(25, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)")
-    eval_episodes: int = option(50, "evaluation rollouts per code")
+    eval_every: int = option(5, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)")
+    eval_episodes: int = option(10, "evaluation rollouts per code")
     log_every: int = option(5, "iterations between log rows")
     checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)")
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        # The paper's text: a weight-clipped Wasserstein critic trained with RMSProp, lr 2e-4 for policy,
+        # critic and posterior, bootstrapped random updates (windows); InfoGAIL's warm start (random codes).
+        "paper-text": {
+            "critic_optimizer": "rmsprop", "weight_clip": 0.01, "gradient_penalty": 0.0, "lr": 2e-4, "lr_critic": 2e-4,
+            "lr_posterior": 2e-4, "update_mode": "window", "bc_init_codes": "random", "bc_init_iterations": 300,
+            "bc_weight": 0.0, "policy_warmup_iterations": 0,
+        },
+    }
+    """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -264,7 +279,7 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
 
 # ---------------------------------------------------------------------- train
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int, device) -> tuple[Modules, PolicyArch]:
-    preset = PRESETS[cfg.learner]
+    preset = LEARNER_KINDS[cfg.learner]
     enc = preset["encoder"]
     arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean)
     policy = GaussianPolicy(arch).to(device)
@@ -281,7 +296,7 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes:
 
 
 def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
-    if not PRESETS[cfg.learner]["codes"]:
+    if not LEARNER_KINDS[cfg.learner]["codes"]:
         return 0
     if cfg.num_codes > 0:
         return cfg.num_codes
@@ -308,7 +323,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         raise PomilError(f"{cfg.demos}: {err}") from None
     execute = executed_actions_fn(env_id, env_kwargs)
     num_codes = resolve_num_codes(cfg, demos)
-    objective = PRESETS[cfg.learner]["critic_objective"]
+    objective = LEARNER_KINDS[cfg.learner]["critic_objective"]
     gen = seed_everything(cfg.seed)
     m, arch = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, device)
     opt = {

@@ -52,6 +52,16 @@ class Circle:
     direction: int
     """+1 anti-clockwise, -1 clockwise."""
 
+    @classmethod
+    def through_origin(cls, angle_deg: float, radius: float, direction: int) -> "Circle":
+        """The circle of ``radius`` whose centre lies at ``angle_deg`` degrees from the x axis.
+
+        >>> Circle.through_origin(90, 5.0, 1)
+        Circle(center=(0.0, 5.0), radius=5.0, direction=1)
+        """
+        a = math.radians(angle_deg)
+        return cls((round(radius * math.cos(a), 9) + 0.0, round(radius * math.sin(a), 9) + 0.0), radius, direction)
+
     def __post_init__(self) -> None:
         if self.radius <= 0:
             raise ValueError(f"circle radius must be > 0, got {self.radius}")
