@@ -1,6 +1,6 @@
 """Training throughput of each adversarial learner on circles, measured in one run.
 
-Runs every learner for a few iterations with the circles recipe of
+Runs every learner for a few iterations with the library defaults, as in
 ``pomil reproduce circles`` (BC warm start off: only the loop is timed) and prints
 env-steps/s (everything included: rollout, critic, posterior, PPO) and the
 share of time spent in each phase, read from the run's own timers.

@@ -1,13 +1,13 @@
 """InfoGAIL-POMDP on circles with one setting varied, over several seeds.
 
-Everything else is the circles recipe of ``pomil reproduce circles``.
+Everything else is the library defaults, as in ``pomil reproduce circles``.
 Prints the mode metrics and training throughput per value and writes them
 as JSON.  Used to choose defaults:
 
     .venv/bin/python benchmarks/circles_variants.py --vary update_mode=sequence,window
     .venv/bin/python benchmarks/circles_variants.py --vary shared_value_encoder=false,true
 
-(``--seeds 3 --iterations 60`` by default; output
+(``--seeds 3 --iterations 30`` by default; output
 ``results/circles/variants-KEY.json``.)
 """
 
@@ -37,7 +37,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--vary", required=True, help="KEY=V1,V2,...: an AdversarialConfig field and its values")
     ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--iterations", type=int, default=60)
+    ap.add_argument("--iterations", type=int, default=AdversarialConfig.iterations)
     ap.add_argument("--demos", default="data/circles.npz")
     ap.add_argument("--out", default=None, help="JSON file (default results/circles/variants-KEY.json)")
     args = ap.parse_args()

@@ -9,7 +9,7 @@ Prints env-steps/s of:
    code uses it);
 4. expert PPO training (``pomil experts hopper``: rollouts + updates);
 5. InfoGAIL-POMDP training on the shipped demonstrations with the Hopper
-   recipe of ``pomil reproduce hopper`` (everything included: rollout,
+   defaults of ``pomil reproduce hopper`` (everything included: rollout,
    critic, posterior, PPO with its BC term; warm start and policy warm-up off
    so that only the loop is timed);
 6. with ``--rollout-threads 1,0``: item 5 once per setting of the
@@ -39,7 +39,6 @@ from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.expert import ExpertConfig, train_expert
 from pomil.config import from_dict
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs, usable_cpus
-from pomil.reproduce import HOPPER_ADVERSARIAL
 
 
 def gym_single_speed(steps: int) -> float:
@@ -60,7 +59,7 @@ def last_row(run: Path) -> dict[str, str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--num-envs", type=int, default=HOPPER_ADVERSARIAL["num_envs"], help="environment copies for 1, 2 and 5")
+    ap.add_argument("--num-envs", type=int, default=AdversarialConfig.num_envs, help="environment copies for 1, 2 and 5")
     ap.add_argument("--iterations", type=int, default=3, help="training iterations timed for 4 and 5")
     ap.add_argument("--demos", default="data/hopper-paper.npz")
     ap.add_argument("--device", default="cpu")
@@ -83,7 +82,7 @@ def main() -> None:
         for m in train_envs:
             for threads in settings:
                 run = Path(tmp) / f"ip{m}-{threads}"
-                values = {**HOPPER_ADVERSARIAL, "learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
+                values = {"learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
                           "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0,
                           "log_every": 1, "progress": False, "device": args.device, "num_envs": m, "rollout_threads": threads}
                 train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))

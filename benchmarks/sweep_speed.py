@@ -1,12 +1,12 @@
 """Wall time of N seeds as one Ray sweep vs one after another, measured in one run on this machine.
 
 Runs ``pomil sweep`` twice on the same config (InfoGAIL-POMDP on circles with
-the reproduction's recipe): once on a local Ray (each run 1 CPU, as many at a
+the library defaults): once on a local Ray (each run 1 CPU, as many at a
 time as there are cores) and once with ``--no-ray`` (one run at a time, torch
 using every core).  Prints both wall times, the ratio, and whether the two
 sweeps' tables agree.
 
-    .venv/bin/python benchmarks/sweep_speed.py [--seeds 4] [--iterations 60]
+    .venv/bin/python benchmarks/sweep_speed.py [--seeds 4] [--iterations 30]
 """
 
 from __future__ import annotations
@@ -19,22 +19,22 @@ import tempfile
 import time
 from pathlib import Path
 
+from pomil.algos.adversarial import AdversarialConfig
 from pomil.envs.circles import make_spec
 from pomil.experts import record_circles_demos
-from pomil.reproduce import CIRCLES_ADVERSARIAL
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=4)
-    ap.add_argument("--iterations", type=int, default=60)
+    ap.add_argument("--iterations", type=int, default=AdversarialConfig.iterations)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         demos = Path(tmp) / "circles.npz"
         record_circles_demos(make_spec(), 400, seed=0).save(demos)
         config = Path(tmp) / "sweep.json"
         config.write_text(json.dumps({"learner": "infogail-pomdp", "demos": str(demos), "iterations": args.iterations,
-                                      "eval_every": 0, **CIRCLES_ADVERSARIAL}))
+                                      "eval_every": 0}))
         walls, summaries = {}, {}
         for mode in ("--ray", "--no-ray"):
             out = Path(tmp) / mode.strip("-")

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Set up with test tools, then the default test suite (slow tests excluded; add `-m slow` for them).
+# Set up with test tools, then the linter and the default test suite (slow tests excluded; add `-m slow` for them).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh test,minari,ray   # the optional extras are tested too
+.venv/bin/ruff check src tests benchmarks scripts
 exec .venv/bin/python -m pytest -q "$@"

@@ -5,7 +5,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from pomil.data import Demonstrations
 from pomil.errors import DataError

@@ -40,19 +40,6 @@ from pomil.experts import record_circles_demos
 from pomil.training import write_json
 
 
-# The adversarial learners' settings for circles, where they differ from
-# AdversarialConfig's defaults (the paper's text).  Why (measured, see README
-# "What it takes"): with the text's weight-clipped critic (+-0.01, RMSProp)
-# the critic's scores stay ~1e-3 apart and carry too little signal to keep the
-# policy on the circles; a gradient-penalty critic does.
-CIRCLES_ADVERSARIAL: dict[str, Any] = {
-    "critic_optimizer": "adam",
-    "gradient_penalty": 10.0,
-    "weight_clip": 0.0,
-    "lr_critic": 5e-4,
-}
-
-
 @dataclass(frozen=True)
 class RayOptions:
     """Where a reproduction's (learner, seed) runs go: one after another, or in parallel on Ray."""
@@ -63,15 +50,16 @@ class RayOptions:
 
 @dataclass(frozen=True)
 class CirclesReproConfig(RayOptions):
-    out: str = option("results/circles", "results directory (metrics.json, table.md, figure.png)")
+    out: str = option("runs/results/circles", "results directory (metrics.json, table.md, figure.png); the committed "
+                                              "results are results/circles (pass --out results/circles to update them)")
     runs: str = option("runs/circles", "where each run's checkpoint and logs go")
     demos: str = option("data/circles.npz", "demonstrations; recorded (400 episodes, seed 0) if missing")
-    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)")
-    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"), "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
-    bc_iterations: int = option(600, "gradient steps for behaviour cloning")
-    adversarial_iterations: int = option(60, "iterations for gail, infogail and infogail-pomdp")
-    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the circles recipe "
-                                         "(pomil.reproduce.CIRCLES_ADVERSARIAL) and the defaults")
+    seeds: int = option(10, "training seeds per learner (0 .. seeds-1)")
+    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
+                                       "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
+    bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)")
+    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)")
+    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
     episodes_per_code: int = option(100, "evaluation rollouts per latent code")
     progress: bool = option(True, "show progress bars")
 
@@ -79,31 +67,31 @@ class CirclesReproConfig(RayOptions):
         check_runs(self)
 
     @property
-    def recipe(self) -> dict[str, Any]:
-        return CIRCLES_ADVERSARIAL
-
-    @property
     def demos_file(self) -> str:
         return self.demos
 
 
 def check_runs(cfg: Any) -> None:
-    """Seeds and learner names of a reproduction config."""
+    """Seeds, iterations and learner names of a reproduction config."""
     if cfg.seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {cfg.seeds}")
+    if cfg.bc_iterations < 0 or cfg.adversarial_iterations < 0:
+        raise ValueError("bc_iterations and adversarial_iterations must be >= 0 (0: the learner's default)")
     unknown = sorted(set(cfg.learners) - set(LEARNERS))
     if unknown or not cfg.learners:
         raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
 
 
 # Each runner takes a reproduction config (circles or Hopper: both have demos_file,
-# recipe, bc_iterations, adversarial_iterations, adversarial_config, progress).
+# bc_iterations, adversarial_iterations, adversarial_config, progress).  Every learner
+# trains with its library defaults: what `pomil train <learner> --demos D` runs.
 def _bc(policy: str) -> Callable[[Any, int, Path], Path]:
     def run(cfg: Any, seed: int, run_dir: Path) -> Path:
         from pomil.algos.bc import BCConfig, train_bc
 
-        return train_bc(BCConfig(demos=cfg.demos_file, out=str(run_dir), policy=policy, iterations=cfg.bc_iterations,
-                                 seed=seed, progress=cfg.progress))
+        iterations = {"iterations": cfg.bc_iterations} if cfg.bc_iterations else {}
+        return train_bc(BCConfig(demos=cfg.demos_file, out=str(run_dir), policy=policy, seed=seed, progress=cfg.progress,
+                                 **iterations))
     return run
 
 
@@ -116,15 +104,15 @@ def _adversarial(learner: str) -> Callable[[Any, int, Path], Path]:
 
 
 def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path):
-    """The experiment's recipe, then the user's --adversarial-config file, then this run's own fields."""
+    """The defaults, then the user's --adversarial-config file, then this run's own fields."""
     from pomil.algos.adversarial import AdversarialConfig
     from pomil.config import from_dict, load_config_file
 
-    values: dict[str, Any] = {**cfg.recipe, "iterations": cfg.adversarial_iterations}
+    values: dict[str, Any] = {"iterations": cfg.adversarial_iterations} if cfg.adversarial_iterations else {}
     if cfg.adversarial_config:
         values.update(load_config_file(cfg.adversarial_config))
     values.update(learner=learner, demos=cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress)
-    return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the experiment's recipe")
+    return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the reproduction's settings")
 
 
 LEARNERS: dict[str, Callable[[Any, int, Path], Path]] = {
@@ -179,7 +167,8 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
     }
     rollouts: dict[str, np.ndarray] = {}
     T = int(demos.episode_lengths[0])
-    rollouts["experts/positions"] = demos.states.reshape(demos.num_episodes, T, -1)[:, 1:, :2] if demos.states is not None else np.zeros((0, T - 1, 2))
+    rollouts["experts/positions"] = (demos.states.reshape(demos.num_episodes, T, -1)[:, 1:, :2] if demos.states is not None
+                                     else np.zeros((0, T - 1, 2)))
     rollouts["experts/groups"] = demos.labels if demos.labels is not None else np.zeros(0, np.int64)
 
     def report(r, n, total) -> None:
@@ -369,33 +358,6 @@ def reproduce_circles_modes(cfg: CirclesModesConfig) -> dict[str, Any]:
 
 
 # ====================================================================== Hopper
-# The adversarial learners' settings for Hopper, where they differ from
-# AdversarialConfig's defaults: the circles critic (gradient penalty); 256
-# episodes of 128 steps per iteration (the batched simulator and the networks
-# run ~2x faster per env step than with 64); evaluation every 5 iterations for
-# the learning curves.  And, each found by measurement (README "Results: Hopper"):
-# the mixture warm start (each code clones its own half of the unlabelled
-# demonstrations: both gaits before any adversarial step; random codes give a
-# forward-only policy), 5 iterations in which only critic, posterior and value
-# learn, and a behaviour-cloning term in the policy loss with a smaller policy
-# learning rate (without them the adversarial updates took the warm-started gait
-# apart within 5-10 iterations).  3000 warm-start steps, not 1000: the policy's
-# log std falls by about 1e-3 per Adam step, so after 1000 steps it sat at -2
-# with the demonstrations' NLL at -3.1; after 3000, -3.8 and NLL -6 to -8, and
-# the forward gait then survived the adversarial phase (with bc_weight 10; at
-# 1000 steps and bc_weight 1, 3 or 10 it wore down: README, exploration runs).
-HOPPER_ADVERSARIAL: dict[str, Any] = {
-    **CIRCLES_ADVERSARIAL,
-    "num_envs": 256,
-    "bc_init_codes": "mixture",
-    "bc_init_iterations": 3000,
-    "policy_warmup_iterations": 5,
-    "bc_weight": 10.0,
-    "lr": 5e-5,
-    "eval_every": 5,
-    "eval_episodes": 10,
-    "log_every": 5,
-}
 # Shipped experts per setting: the paper setting's never learned to stay healthy past 128 steps.
 HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper' else '-' + setting}-{task}.pt"
                             for task in ("forward", "backward")} for setting in ("paper", "standard")}
@@ -405,16 +367,17 @@ METRICS = ("normalised_return", "progress", "displacement_ratio")
 @dataclass(frozen=True)
 class HopperReproConfig(RayOptions):
     setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
-    out: str = option("", "results directory (default: results/hopper, results/hopper-standard for the standard setting)")
+    out: str = option("", "results directory (default: runs/results/hopper[-standard]; the committed results are "
+                          "results/hopper[-standard])")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
     demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
     demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded")
     seeds: int = option(3, "training seeds per learner (0 .. seeds-1)")
-    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"), "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
-    bc_iterations: int = option(500, "gradient steps for behaviour cloning (64 episodes each)")
-    adversarial_iterations: int = option(30, "iterations for gail, infogail and infogail-pomdp (x 256 x 128 env steps)")
-    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the Hopper recipe "
-                                         "(pomil.reproduce.HOPPER_ADVERSARIAL) and the defaults")
+    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
+                                       "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
+    bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)")
+    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)")
+    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
     episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)")
     progress: bool = option(True, "show progress bars")
 
@@ -424,16 +387,12 @@ class HopperReproConfig(RayOptions):
         check_runs(self)
 
     @property
-    def recipe(self) -> dict[str, Any]:
-        return HOPPER_ADVERSARIAL
-
-    @property
     def demos_file(self) -> str:
         return str(self.path("demos"))
 
     def path(self, name: str) -> Path:
         suffix = "" if self.setting == "paper" else f"-{self.setting}"
-        defaults = {"out": f"results/hopper{suffix}", "runs": f"runs/{Path(self.out).name}" if self.out else f"runs/hopper{suffix}",
+        defaults = {"out": f"runs/results/hopper{suffix}", "runs": f"runs/{Path(self.out).name}" if self.out else f"runs/hopper{suffix}",
                     "demos": f"data/hopper-{self.setting}.npz"}
         return Path(getattr(self, name) or defaults[name])
 
@@ -518,7 +477,8 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     out = cfg.path("out")
     results: dict[str, Any] = {
         "experiment": "hopper" if demos.metadata.get("env_id") == "Hopper-v5" else "tasks",
-        "env_id": demos.metadata.get("env_id"), "setting": demos.metadata.get("setting", cfg.setting), "config": to_dict(cfg), "seeds": cfg.seeds, "tasks": tasks,
+        "env_id": demos.metadata.get("env_id"), "setting": demos.metadata.get("setting", cfg.setting), "config": to_dict(cfg),
+        "seeds": cfg.seeds, "tasks": tasks,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path), "reference": reference,
         "adversarial_settings": {k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
                                  if k not in ("learner", "out", "seed", "progress")},

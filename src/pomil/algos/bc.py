@@ -35,7 +35,7 @@ class BCConfig(RunConfig):
     out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     policy: Literal["mlp", "gru"] = option("gru", "mlp: current observation only; gru: belief over the history")
     hidden_size: int = option(128, "width of the dense layers and GRU cells")
-    iterations: int = option(1500, "gradient steps")
+    iterations: int = option(500, "gradient steps")
     batch_episodes: int = option(64, "whole episodes per minibatch")
     lr: float = option(1e-3, "Adam learning rate")
     log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy")

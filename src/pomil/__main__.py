@@ -1,0 +1,7 @@
+"""``python -m pomil`` is the ``pomil`` command."""
+
+import sys
+
+from pomil.cli import main
+
+sys.exit(main())

@@ -1,0 +1,98 @@
+"""The library's defaults are the measured recipe; the paper's text is a named preset."""
+
+import dataclasses
+import json
+
+import pytest
+
+from pomil.algos.adversarial import AdversarialConfig, train_adversarial
+from pomil.api import TrainedPolicy
+from pomil.cli import main
+from pomil.config import from_dict
+from pomil.envs.circles import Circle, CirclesSpec
+from pomil.errors import PomilError
+from pomil.eval.rollout import evaluate_circles
+from pomil.reproduce import MODES_CASES, CirclesReproConfig, adversarial_config, modes_success
+
+
+def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
+    cfg = AdversarialConfig()
+    assert (cfg.critic_optimizer, cfg.gradient_penalty, cfg.weight_clip, cfg.lr_critic) == ("adam", 10.0, 0.0, 5e-4)
+    assert (cfg.bc_init_codes, cfg.bc_init_iterations, cfg.bc_weight, cfg.lr, cfg.policy_warmup_iterations) == (
+        "mixture", 3000, 10.0, 5e-5, 5)
+    assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "default")
+    # a reproduction adds only the run's own fields to the defaults
+    repro = adversarial_config(CirclesReproConfig(), "infogail-pomdp", 3, tmp_path)
+    plain = AdversarialConfig(demos=repro.demos, out=str(tmp_path), seed=3)
+    assert repro == plain
+
+
+def test_paper_text_preset_gives_the_texts_settings_and_flags_override_it():
+    cfg = from_dict(AdversarialConfig, {"preset": "paper-text"})
+    assert cfg.preset == "paper-text"
+    assert (cfg.critic_optimizer, cfg.weight_clip, cfg.gradient_penalty) == ("rmsprop", 0.01, 0.0)
+    assert cfg.lr == cfg.lr_critic == cfg.lr_posterior == 2e-4
+    assert (cfg.update_mode, cfg.bc_init_codes, cfg.bc_weight, cfg.policy_warmup_iterations) == ("window", "random", 0.0, 0)
+    assert (cfg.gamma, cfg.gae_lambda, cfg.hidden_size) == (0.99, 0.95, 128)  # the text's, and the defaults too
+    assert from_dict(AdversarialConfig, {"preset": "paper-text", "lr": 1e-3}).lr == 1e-3  # the user's values win
+    assert from_dict(AdversarialConfig, {"preset": "default"}) == AdversarialConfig()
+    with pytest.raises(PomilError, match="config key 'preset': expected one of \\['default', 'paper-text'\\], got 'paper'"):
+        from_dict(AdversarialConfig, {"preset": "paper"})
+
+
+def test_preset_flag_is_recorded_in_config_json(demos_path, tmp_path):
+    out = tmp_path / "run"
+    assert main(["train", "infogail", "--preset", "paper-text", "--demos", str(demos_path), "--out", str(out), "--iterations", "1",
+                 "--num-envs", "4", "--hidden-size", "8", "--bc-init-iterations", "1", "--eval-every", "0",
+                 "--critic-steps", "1", "--no-progress"]) == 0
+    written = json.loads((out / "config.json").read_text())
+    assert written["preset"] == "paper-text" and written["critic_optimizer"] == "rmsprop" and written["weight_clip"] == 0.01
+    assert written["bc_init_iterations"] == 1  # the flag over the preset
+
+
+def test_circle_through_origin_and_every_modes_case_is_a_valid_set():
+    c = Circle.through_origin(210, 5.0, -1)
+    assert abs(c.center[0] + 5.0 * 3 ** 0.5 / 2) < 1e-9 and abs(c.center[1] + 2.5) < 1e-9
+    assert {len(v) for v in MODES_CASES.values()} == {2, 3, 4, 5, 6}
+    for circles in MODES_CASES.values():
+        CirclesSpec(circles)  # each passes through the origin
+
+
+def test_modes_success_needs_purity_coverage_and_nmi():
+    share = lambda *s: {"mode_share": list(s)}  # noqa: E731
+    good = {"min_purity": 0.96, "nmi": 0.93, "modes_covered": 3, "per_code": [share(1, 0, 0)] * 3}
+    assert modes_success(good)
+    assert not modes_success({**good, "min_purity": 0.94})
+    assert not modes_success({**good, "nmi": 0.89})
+    assert not modes_success({**good, "modes_covered": 2})
+
+
+def test_reproduce_circles_modes_tiny(tmp_path):
+    (tmp_path / "adv.json").write_text(json.dumps({"iterations": 1, "num_envs": 4, "hidden_size": 8, "bc_init_iterations": 2,
+                                                   "posterior_init_iterations": 1, "critic_batch": 4, "eval_every": 0}))
+    out = tmp_path / "results"
+    assert main(["reproduce", "circles-modes", "--seeds", "1", "--cases", "two,three", "--episodes-per-mode", "4",
+                 "--episodes-per-code", "3", "--adversarial-config", str(tmp_path / "adv.json"), "--out", str(out),
+                 "--runs", str(tmp_path / "runs"), "--no-progress"]) == 0
+    results = json.loads((out / "metrics.json").read_text())
+    assert list(results["cases"]) == ["two", "three"] and results["cases"]["three"]["modes"] == 3
+    assert len(results["cases"]["two"]["runs"]) == 1 and "success" in results["cases"]["two"]["runs"][0]
+    assert "| three | 3 |" in (out / "table.md").read_text()
+
+
+def _default_run(demos_path, out, **overrides):
+    cfg = dataclasses.replace(AdversarialConfig(demos=str(demos_path), out=str(out), progress=False, eval_every=0), **overrides)
+    return evaluate_circles(TrainedPolicy.load(train_adversarial(cfg)), 50, seed=1000)[0]
+
+
+def test_short_default_run_separates_the_two_circles(demos_path, tmp_path):
+    """The defaults with a shorter schedule (the smoke version of the slow test below)."""
+    m = _default_run(demos_path, tmp_path / "short", iterations=2, num_envs=64, bc_init_iterations=400,
+                     posterior_init_iterations=50)
+    assert m["modes_covered"] == 2 and m["min_purity"] >= 0.9, m
+
+
+@pytest.mark.slow
+def test_default_flags_learn_the_two_circles(demos_path, tmp_path):
+    m = _default_run(demos_path, tmp_path / "default")
+    assert m["modes_covered"] == 2 and m["min_purity"] >= 0.95 and m["nmi"] >= 0.9, m
