@@ -3,7 +3,8 @@
 Every option of ``train`` (and of ``demos`` and ``reproduce``) is a field of a
 typed config dataclass; ``--config FILE.json`` sets any of them and flags
 override the file.  Problems with the user's input end with one line on
-stderr and exit status 2.
+stderr and exit status 2; a run that diverged (NaN or inf) ends the same way
+with exit status 3.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any, Callable, Literal, get_args, get_origin
 
 import numpy as np
 
-from pomil.config import field_help, from_dict, load_config_file, option
+from pomil.config import field_help, field_interval, from_dict, load_config_file, option
 from pomil.errors import PomilError
 
 
@@ -35,7 +36,8 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
         tp = hints[f.name]
         flag = "--" + f.name.replace("_", "-")
         default = f.default
-        help_text = f"{field_help(f)} (default: {default!r})"
+        interval = field_interval(f)
+        help_text = f"{field_help(f)} (default: {default!r}{'; in ' + interval.text if interval else ''})"
         if tp is bool:
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_text)
             continue
@@ -61,14 +63,14 @@ def config_from_args(cls: type, args: argparse.Namespace) -> Any:
 @dataclass(frozen=True)
 class CirclesDemosConfig:
     out: str = option("data/circles.npz", "output .npz file (written atomically)")
-    episodes: int = option(400, "episodes in total, split equally between the modes")
+    episodes: int = option(400, "episodes in total, split equally between the modes", within="[1, inf)")
     modes: Literal["two", "four"] = option("two", "circles preset: two (the paper's) or four")
-    radius: float = option(5.0, "radius of every circle")
-    episode_length: int = option(33, "steps per episode (33 = one loop of a radius-5 circle)")
-    history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions")
+    radius: float = option(5.0, "radius of every circle", within="(0, inf)")
+    episode_length: int = option(33, "steps per episode (33 = one loop of a radius-5 circle)", within="[1, inf)")
+    history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions", within="[1, inf)")
     action_type: Literal["vector", "angle"] = option("vector", "action format: 2-D direction vector or heading angle")
-    noise_std: float = option(0.36787944117144233, "std of the experts' heading noise in radians (exp(-1))")
-    seed: int = option(0, "random seed")
+    noise_std: float = option(0.36787944117144233, "std of the experts' heading noise in radians (exp(-1))", within="[0, inf)")
+    seed: int = option(0, "random seed", within="[0, 4294967295]")
 
 
 def cmd_demos(args: argparse.Namespace) -> int:
@@ -91,12 +93,12 @@ def cmd_demos(args: argparse.Namespace) -> int:
 @dataclass(frozen=True)
 class HopperDemosConfig:
     out: str = option("data/hopper-paper.npz", "output .npz file (written atomically)")
-    episodes: int = option(200, "episodes per task")
+    episodes: int = option(200, "episodes per task", within="[1, inf)")
     setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; standard: Hopper-v5's 1000 steps")
     forward_expert: str = option("data/experts/hopper-forward.pt", "forward expert checkpoint (pomil experts hopper)")
     backward_expert: str = option("data/experts/hopper-backward.pt", "backward expert checkpoint")
     observation_mask: str = option("positions-only", "what the learner observes: positions-only, or comma-separated indices")
-    seed: int = option(0, "random seed (reset noise, episode order)")
+    seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
 
 
 def _mask_arg(text: str) -> str | list[int] | None:
@@ -112,10 +114,10 @@ def _mask_arg(text: str) -> str | list[int] | None:
 class RecordDemosConfig:
     expert: str = option("", "expert checkpoint (pomil experts ...); demonstrations come from its environment and keywords")
     out: str = option("", "output .npz file (written atomically)")
-    episodes: int = option(200, "episodes to record")
+    episodes: int = option(200, "episodes to record", within="[1, inf)")
     task: str = option("", "task name kept as the episodes' label (default: forward/backward from forward_reward_weight)")
     observation_mask: str = option("positions-only", "what the learner observes: positions-only, comma-separated indices, or '' (all)")
-    seed: int = option(0, "random seed (reset noise)")
+    seed: int = option(0, "random seed (reset noise)", within="[0, 4294967295]")
 
 
 def cmd_demos_record(args: argparse.Namespace) -> int:
@@ -142,9 +144,9 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
 @dataclass(frozen=True)
 class MergeDemosConfig:
     out: str = option("", "output .npz file (written atomically)")
-    proportions: tuple[float, ...] = option((), "share of each file's episodes, e.g. 1,1 (default: equal)")
-    episodes: int = option(0, "episodes in total (0: as many as the files allow in these proportions)")
-    seed: int = option(0, "random seed (which episodes, their order)")
+    proportions: tuple[float, ...] = option((), "share of each file's episodes, e.g. 1,1 (default: equal)", within="[0, inf)")
+    episodes: int = option(0, "episodes in total (0: as many as the files allow in these proportions)", within="[0, inf)")
+    seed: int = option(0, "random seed (which episodes, their order)", within="[0, 4294967295]")
 
 
 def cmd_demos_merge(args: argparse.Namespace) -> int:
@@ -455,7 +457,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except PomilError as err:
         print(f"pomil: error: {err}", file=sys.stderr)
-        return 2
+        return err.exit_status
     except KeyboardInterrupt:
         print("pomil: interrupted", file=sys.stderr)
         return 130

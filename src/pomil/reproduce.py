@@ -30,7 +30,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from pomil.api import TrainedPolicy
-from pomil.config import option, to_dict
+from pomil.config import check_fields, option, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.envs.circles import make_spec
 from pomil.errors import PomilError
@@ -66,13 +66,13 @@ class CirclesReproConfig(RayOptions):
     out: str = option("results/circles", "results directory (metrics.json, table.md, figure.png)")
     runs: str = option("runs/circles", "where each run's checkpoint and logs go")
     demos: str = option("data/circles.npz", "demonstrations; recorded (400 episodes, seed 0) if missing")
-    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)")
+    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"), "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
-    bc_iterations: int = option(600, "gradient steps for behaviour cloning")
-    adversarial_iterations: int = option(60, "iterations for gail, infogail and infogail-pomdp")
+    bc_iterations: int = option(600, "gradient steps for behaviour cloning", within="[1, inf)")
+    adversarial_iterations: int = option(60, "iterations for gail, infogail and infogail-pomdp", within="[1, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the circles recipe "
                                          "(pomil.reproduce.CIRCLES_ADVERSARIAL) and the defaults")
-    episodes_per_code: int = option(100, "evaluation rollouts per latent code")
+    episodes_per_code: int = option(100, "evaluation rollouts per latent code", within="[1, inf)")
     progress: bool = option(True, "show progress bars")
 
     def __post_init__(self) -> None:
@@ -89,8 +89,7 @@ class CirclesReproConfig(RayOptions):
 
 def check_runs(cfg: Any) -> None:
     """Seeds and learner names of a reproduction config."""
-    if cfg.seeds < 1:
-        raise ValueError(f"seeds must be >= 1, got {cfg.seeds}")
+    check_fields(cfg)
     unknown = sorted(set(cfg.learners) - set(LEARNERS))
     if unknown or not cfg.learners:
         raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
@@ -282,14 +281,14 @@ class HopperReproConfig(RayOptions):
     out: str = option("", "results directory (default: results/hopper, results/hopper-standard for the standard setting)")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
     demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
-    demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded")
-    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)")
+    demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded", within="[1, inf)")
+    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"), "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
-    bc_iterations: int = option(500, "gradient steps for behaviour cloning (64 episodes each)")
-    adversarial_iterations: int = option(30, "iterations for gail, infogail and infogail-pomdp (x 256 x 128 env steps)")
+    bc_iterations: int = option(500, "gradient steps for behaviour cloning (64 episodes each)", within="[1, inf)")
+    adversarial_iterations: int = option(30, "iterations for gail, infogail and infogail-pomdp (x 256 x 128 env steps)", within="[1, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the Hopper recipe "
                                          "(pomil.reproduce.HOPPER_ADVERSARIAL) and the defaults")
-    episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)")
+    episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)", within="[1, inf)")
     progress: bool = option(True, "show progress bars")
 
     def __post_init__(self) -> None:

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from pomil.config import load_config_file, option, parse_kwargs
+from pomil.config import check_fields, load_config_file, option, parse_kwargs
 from pomil.data import atomic_write
 from pomil.errors import PomilError
 from pomil.training import write_json
@@ -32,17 +32,14 @@ from pomil.training import write_json
 @dataclass(frozen=True)
 class SweepConfig:
     out: str = option("runs/sweep", "sweep directory: one folder per setting and seed, sweep.json, table.md, figure.png")
-    seeds: int = option(3, "training seeds per setting (0 .. seeds-1)")
+    seeds: int = option(3, "training seeds per setting (0 .. seeds-1)", within="[1, inf)")
     ray: bool = option(True, "run on Ray (a local Ray started in-process unless --address); --no-ray: one after another")
     address: str = option("", "address of an existing Ray cluster (paths must be on storage every node sees)")
-    cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)")
-    episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run")
+    cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)", within="(0, inf)")
+    episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run", within="[1, inf)")
 
     def __post_init__(self) -> None:
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
-        if self.cpus_per_run <= 0:
-            raise ValueError(f"cpus_per_run must be > 0, got {self.cpus_per_run}")
+        check_fields(self)
 
 
 def parse_grid(entries: list[str]) -> dict[str, list[Any]]:

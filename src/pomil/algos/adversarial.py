@@ -42,11 +42,11 @@ import torch.nn.functional as F
 
 from pomil.algos.bc import bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
 from pomil.api import TrainedPolicy
-from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
-from pomil.errors import PomilError
+from pomil.errors import ConfigError, PomilError
 from pomil.nn import heads
 from pomil.nn.heads import BeliefHead
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
@@ -71,64 +71,61 @@ PRESETS = {
 class AdversarialConfig(RunConfig):
     learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp", "which learner (set by the subcommand)")
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)")
-    num_envs: int = option(64, "episodes collected per iteration")
+    iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)", within="[1, inf)")
+    num_envs: int = option(64, "episodes collected per iteration", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
-                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on")
-    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)")
-    hidden_size: int = option(128, "dense width and GRU cells of every network")
-    lr: float = option(2e-4, "policy learning rate (Adam)")
-    lr_value: float = option(5e-4, "value-function learning rate (Adam)")
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on", within="[0, inf)")
+    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)", within="[-1, inf)")
+    hidden_size: int = option(128, "dense width and GRU cells of every network", within="[1, inf)")
+    lr: float = option(2e-4, "policy learning rate (Adam)", within="(0, inf)")
+    lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
     shared_value_encoder: bool = option(False, "value head on the policy's encoder instead of its own (measured: see README)")
-    lr_critic: float = option(2e-4, "critic learning rate")
-    lr_posterior: float = option(2e-4, "posterior learning rate (Adam)")
+    lr_critic: float = option(2e-4, "critic learning rate", within="(0, inf)")
+    lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("rmsprop", "rmsprop (paper text) or adam (paper code)")
-    critic_steps: int = option(3, "critic updates per iteration")
-    critic_batch: int = option(64, "expert and policy episodes per critic update")
+    critic_steps: int = option(3, "critic updates per iteration", within="[1, inf)")
+    critic_batch: int = option(64, "expert and policy episodes per critic update", within="[1, inf)")
     expert_action_noise: bool = option(False, "add the policy's current action noise to the demonstrations' actions the critic "
                                        "sees, so that it cannot tell deterministic experts from the policy by action jitter")
-    weight_clip: float = option(0.01, "clip Wasserstein critic weights to +-this after each update (0: off; never for GAIL's GAN critic)")
-    gradient_penalty: float = option(0.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam")
-    posterior_steps: int = option(1, "posterior updates per iteration")
-    mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)")
-    ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss")
+    weight_clip: float = option(0.01, "clip Wasserstein critic weights to +-this after each update (0: off; never for GAIL's GAN critic)", within="[0, inf)")
+    gradient_penalty: float = option(0.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam", within="[0, inf)")
+    posterior_steps: int = option(1, "posterior updates per iteration", within="[1, inf)")
+    mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)", within="[0, inf)")
+    ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
-    gamma: float = option(0.99, "discount")
-    gae_lambda: float = option(0.95, "GAE lambda")
-    clip: float = option(0.2, "PPO ratio clip")
-    value_clip: float = option(0.0, "PPO value clip (0: off)")
-    ppo_epochs: int = option(2, "PPO epochs per iteration")
-    minibatches: int = option(4, "PPO minibatches per epoch")
+    gamma: float = option(0.99, "discount", within="(0, 1]")
+    gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
+    clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
+    value_clip: float = option(0.0, "PPO value clip (0: off)", within="[0, inf)")
+    ppo_epochs: int = option(2, "PPO epochs per iteration", within="[1, inf)")
+    minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
     update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
-    window_length: int = option(8, "steps per window in window mode")
-    bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)")
-    bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start")
-    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step")
+    window_length: int = option(8, "steps per window in window mode", within="[1, inf)")
+    bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)", within="[0, inf)")
+    bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start", within="(0, inf)")
+    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
     bc_init_codes: Literal["random", "mixture"] = option("random", "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes (mixture likelihood)")
     posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
-                                                 "each episode labelled with its most likely code")
-    log_std_init: float = option(-1.0, "initial log std of the policy")
+                                                 "each episode labelled with its most likely code", within="[0, inf)")
+    log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
     bc_weight: float = option(0.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
-                                    "policy's PPO loss (keeps the policy near the demonstrations; 0: off)")
+                                    "policy's PPO loss (keeps the policy near the demonstrations; 0: off)", within="[0, inf)")
     policy_warmup_iterations: int = option(0, "first iterations in which only the critic, posterior and value learn "
-                                              "(the warm-started policy waits for a trained value and critic)")
-    eval_every: int = option(25, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)")
-    eval_episodes: int = option(50, "evaluation rollouts per code")
-    log_every: int = option(5, "iterations between log rows")
-    checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)")
+                                              "(the warm-started policy waits for a trained value and critic)", within="[0, inf)")
+    eval_every: int = option(25, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)", within="[0, inf)")
+    eval_episodes: int = option(50, "evaluation rollouts per code", within="[1, inf)")
+    log_every: int = option(5, "iterations between log rows", within="[1, inf)")
+    checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)", within="[1, inf)")
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs", "bc_init_batch",
-                       "minibatches", "window_length", "eval_episodes")
-        if min(self.bc_init_iterations, self.posterior_init_iterations, self.policy_warmup_iterations, self.rollout_threads) < 0:
-            raise ValueError("bc_init_iterations, posterior_init_iterations, policy_warmup_iterations and rollout_threads must be >= 0")
-        if self.gradient_penalty < 0 or self.weight_clip < 0 or self.bc_weight < 0:
-            raise ValueError("gradient_penalty, weight_clip and bc_weight must be >= 0")
-        if self.num_codes in (0, 1) or self.num_codes < -1:
-            raise ValueError(f"num_codes must be -1 (from the demonstrations) or >= 2, got {self.num_codes}")
+        super().__post_init__()  # every field in its interval (see the option declarations)
+        if self.num_codes in (0, 1):
+            raise ConfigError(f"config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got {self.num_codes}")
+        if self.update_mode == "sequence" and self.minibatches > self.num_envs:
+            raise ConfigError(f"config key 'minibatches': expected at most num_envs ({self.num_envs}) whole episodes "
+                              f"per epoch in sequence mode, got {self.minibatches}")
 
 
 @dataclass

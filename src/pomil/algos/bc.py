@@ -18,7 +18,7 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.data import PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.envs.wrappers import parse_mask
@@ -34,17 +34,14 @@ from pomil.training import (
 class BCConfig(RunConfig):
     out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     policy: Literal["mlp", "gru"] = option("gru", "mlp: current observation only; gru: belief over the history")
-    hidden_size: int = option(128, "width of the dense layers and GRU cells")
-    iterations: int = option(1500, "gradient steps")
-    batch_episodes: int = option(64, "whole episodes per minibatch")
-    lr: float = option(1e-3, "Adam learning rate")
-    log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy")
+    hidden_size: int = option(128, "width of the dense layers and GRU cells", within="[1, inf)")
+    iterations: int = option(1500, "gradient steps", within="[1, inf)")
+    batch_episodes: int = option(64, "whole episodes per minibatch", within="[1, inf)")
+    lr: float = option(1e-3, "Adam learning rate", within="(0, inf)")
+    log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy", within="(-inf, inf)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, "iterations", "batch_episodes", "hidden_size")
-        if self.lr <= 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
 
 
 def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor,

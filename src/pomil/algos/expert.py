@@ -21,7 +21,7 @@ from typing import Literal
 
 import torch
 
-from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.envs.locomotion import HOPPER_ID, locomotion_kwargs
 from pomil.envs.wrappers import parse_mask, resolve_observation_mask
@@ -46,31 +46,26 @@ class ExpertConfig(RunConfig):
                                              "and setting, e.g. ctrl_cost_weight=0.05,max_episode_steps=200")
     observation_mask: str = option("", "what the expert observes: '' (everything), positions-only, or comma-separated indices")
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)")
-    num_envs: int = option(64, "environment copies stepped together")
+    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)", within="[1, inf)")
+    num_envs: int = option(64, "environment copies stepped together", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
-                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on")
-    hidden_size: int = option(64, "width of the policy's and value's hidden layers")
-    lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)")
-    epochs: int = option(10, "PPO epochs per iteration")
-    minibatches: int = option(16, "minibatches per epoch")
-    clip: float = option(0.2, "PPO ratio clip")
-    gamma: float = option(0.99, "discount")
-    gae_lambda: float = option(0.95, "GAE lambda")
-    ent_coef: float = option(0.0, "entropy bonus")
-    vf_coef: float = option(0.5, "value-loss weight")
-    max_grad_norm: float = option(0.5, "gradient-norm clip")
-    log_std_init: float = option(0.0, "initial log std of the policy")
-    log_every: int = option(5, "iterations between log rows")
-    checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)")
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on", within="[0, inf)")
+    hidden_size: int = option(64, "width of the policy's and value's hidden layers", within="[1, inf)")
+    lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)", within="(0, inf)")
+    epochs: int = option(10, "PPO epochs per iteration", within="[1, inf)")
+    minibatches: int = option(16, "minibatches per epoch", within="[1, inf)")
+    clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
+    gamma: float = option(0.99, "discount", within="(0, 1]")
+    gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
+    ent_coef: float = option(0.0, "entropy bonus", within="[0, inf)")
+    vf_coef: float = option(0.5, "value-loss weight", within="[0, inf)")
+    max_grad_norm: float = option(0.5, "gradient-norm clip", within="(0, inf)")
+    log_std_init: float = option(0.0, "initial log std of the policy", within="(-inf, inf)")
+    log_every: int = option(5, "iterations between log rows", within="[1, inf)")
+    checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)", within="[1, inf)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, "iterations", "num_envs", "hidden_size", "epochs", "minibatches")
-        if self.lr <= 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.rollout_threads < 0:
-            raise ValueError(f"rollout_threads must be >= 0, got {self.rollout_threads}")
 
     def env_settings(self) -> tuple[dict, list[int] | None]:
         """(constructor keywords, observation indices or None); ValueError when the env rejects them."""
