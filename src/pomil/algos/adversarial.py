@@ -32,6 +32,7 @@ value, critic and posterior; codes; Wasserstein).
 from __future__ import annotations
 
 import copy
+import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -55,7 +56,7 @@ from pomil.rl.collect import collect
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import (
-    RunLogger, resolve_device, resume_run, rng_state,
+    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
     save_checkpoint, seed_everything, write_json,
 )
 
@@ -291,6 +292,20 @@ def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
 
 
 def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
+    """Train (or continue) an adversarial run; returns the checkpoint path."""
+    with RunLock(cfg.out) as lock:
+        return _train_adversarial(cfg, resume, lock)
+
+
+def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
+    """The option to lower when a quantity (named by its first word) turns NaN or inf."""
+    return {"policy": lr_hint(cfg, "lr"), "ppo": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr_value"),
+            "critic": lr_hint(cfg, "lr_critic"), "posterior": lr_hint(cfg, "lr_posterior"),
+            "reward": f"{lr_hint(cfg, 'lr_critic')} or {lr_hint(cfg, 'lr_posterior')}",
+            "warm-start": lr_hint(cfg, "bc_init_lr")}
+
+
+def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> Path:
     if not cfg.demos:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
     run_dir = Path(cfg.out)
@@ -317,15 +332,23 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     if m.posterior is not None:
         opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
     nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
-    start = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else 0
+    lock.acquire(resume)
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else RunStart()
+    start = resumed.iteration
+    if start == cfg.iterations:
+        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
+        return ckpt_path
     write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
+    guard = DivergenceGuard(ckpt_path, divergence_hints(cfg), start)
     expert = demos.padded(device)
     expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
     expert_prev = shift_actions(expert.actions)
     mixture = cfg.bc_init_codes == "mixture" and num_codes > 0  # the warm start's and the BC term's likelihood
-    init_stats = bc_warm_start(m, expert, expert_prev, num_codes, mixture, cfg, gen) if start == 0 and cfg.bc_init_iterations > 0 else {}
+    init_stats = (bc_warm_start(m, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
+                  if start == 0 and cfg.bc_init_iterations > 0 else {})
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
                        key_stats=("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein"))
+    guard.on_stop = logger.close
 
     def checkpoint(iteration: int) -> None:
         logger.flush()
@@ -334,7 +357,9 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             "env": env_info, "policy_arch": arch.to_dict(), "policy": m.policy.state_dict(),
             "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
             "optimizers": {k: o.state_dict() for k, o in opt.items()}, "rng": rng_state(gen),
+            "env_steps": steps_done,
         })
+        guard.saved(iteration)
 
     if start == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
         if evaluate is not None:
@@ -342,7 +367,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         if init_stats:
             logger.log(0, init_stats)
     timers = {"rollout": 0.0, "critic": 0.0, "posterior": 0.0, "ppo": 0.0}
-    steps_done = 0
+    steps_done = resumed.env_steps  # eval/env_steps counts the whole run, across resumes
     t_start = time.perf_counter()
     for it in range(start + 1, cfg.iterations + 1):
         stats: dict[str, float] = {}
@@ -350,6 +375,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         t0 = time.perf_counter()
         roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device, cfg.rollout_threads)
         stats["env/true_return"] = env_rewards.sum(0).mean().item()
+        guard.value(it, "environment reward", stats["env/true_return"])
         steps_done += roll.num_steps * roll.num_envs
         t1 = time.perf_counter()
         # 2. critic
@@ -358,8 +384,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                              else (expert.actions, expert_prev))
             loss, s = critic_loss(m.critic, _expert_batch(expert, e_act, e_prev, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
                                   objective, cfg.gradient_penalty)
+            guard.value(it, "critic loss", s["critic/loss"])
             opt["critic"].zero_grad(set_to_none=True)
             loss.backward()
+            guard.grads(it, "critic", m.critic.parameters())
             opt["critic"].step()
             if cfg.weight_clip > 0 and objective == "wasserstein":
                 with torch.no_grad():
@@ -373,13 +401,16 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             for _ in range(cfg.posterior_steps):
                 for batch_idx, batch in _posterior_batches(roll, code_steps, cfg, gen):
                     loss, s = posterior_loss(m.posterior, batch, batch_idx)
+                    guard.value(it, "posterior loss", s["posterior/loss"])
                     opt["posterior"].zero_grad(set_to_none=True)
                     loss.backward()
+                    guard.grads(it, "posterior", m.posterior.parameters())
                     opt["posterior"].step()
             stats.update(s)
         t3 = time.perf_counter()
         # 4. rewards and advantages
         r, s = rewards(m, roll, code_idx, cfg, objective)
+        guard.value(it, "reward", r)
         stats.update(s)
         adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
         roll = roll.with_(rewards=r, advantages=adv, returns=ret)
@@ -409,15 +440,19 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                     bc, bc_stats = demo_nll(m.policy, demo_feats, demo, gen, num_codes, mixture)
                     loss = loss + cfg.bc_weight * bc
                     s["ppo/bc_nll"] = bc_stats["bc/nll"]
+                guard.value(it, "policy loss (PPO)", s["ppo/policy_loss"])
+                guard.value(it, "value loss", s["ppo/value_loss"])
                 opt["policy"].zero_grad(set_to_none=True)
                 opt["value"].zero_grad(set_to_none=True)
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5)
-                torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5)  # without a shared encoder
+                guard.value(it, "policy gradient norm", torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5))
+                guard.value(it, "value gradient norm",  # without a shared encoder
+                            torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5))
                 if it > cfg.policy_warmup_iterations:
                     opt["policy"].step()
                 opt["value"].step()
         stats.update(s)
+        guard.params(it, nets)  # after weight clipping: what a checkpoint of this iteration would hold
         t4 = time.perf_counter()
         for k, dt in zip(timers, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             timers[k] += dt
@@ -459,7 +494,7 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
 
 
 def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
-                  cfg: AdversarialConfig, gen: torch.Generator) -> dict[str, float]:
+                  cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
 
     Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
@@ -471,8 +506,13 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
     opt = torch.optim.Adam(m.policy.parameters(), lr=cfg.bc_init_lr)
     stats: dict[str, float] = {}
-    for _ in range(cfg.bc_init_iterations):
+    for step in range(1, cfg.bc_init_iterations + 1):
         stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture)
+        if guard is not None:
+            where = f"warm-start step {step}"
+            guard.value(where, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
+            guard.grads(where, "warm-start policy", m.policy.parameters())
+            guard.params(where, {"warm-start policy": m.policy})
     if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = most_likely_codes(m.policy, expert, expert_prev)
         stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
@@ -482,6 +522,8 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
             idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
             loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
                                           starts[:, idx], expert.mask[:, idx], codes[idx].expand(expert.mask.shape[0], -1))
+            if guard is not None:
+                guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
             post_opt.zero_grad(set_to_none=True)
             loss.backward()
             post_opt.step()

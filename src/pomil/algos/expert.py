@@ -14,6 +14,7 @@ locomotion.
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +33,10 @@ from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.rl.collect import collect
 from pomil.rl.gae import gae
 from pomil.rl.ppo import normalize, ppo_loss
-from pomil.training import RunLogger, resolve_device, resume_run, rng_state, save_checkpoint, seed_everything, write_json
+from pomil.training import (
+    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
+    save_checkpoint, seed_everything, write_json,
+)
 
 
 @dataclass(frozen=True)
@@ -103,6 +107,12 @@ def discounted_returns(rewards: torch.Tensor, mask: torch.Tensor, gamma: float) 
 
 
 def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
+    """Train (or continue) a PPO expert; returns the checkpoint path."""
+    with RunLock(cfg.out) as lock:
+        return _train_expert(cfg, resume, lock)
+
+
+def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
     run_dir = Path(cfg.out)
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(cfg.device)
@@ -124,10 +134,18 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
     params = list(policy.parameters()) + list(value.parameters())
     opt = torch.optim.Adam(params, lr=cfg.lr, eps=1e-5)
     nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
-    start = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else 0
+    lock.acquire(resume)
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else RunStart()
+    start = resumed.iteration
+    if start == cfg.iterations:
+        raw_env.close()
+        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
+        return ckpt_path
     write_json(run_dir / "config.json", {"algo": "expert", **to_dict(cfg)})
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.env_id} {cfg.task}",
                        key_stats=("env/return", "ppo/approx_kl"))
+    lr = lr_hint(cfg, "lr")
+    guard = DivergenceGuard(ckpt_path, {"policy": lr, "ppo": lr, "value": lr}, start, logger.close)
     env_info = {"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}
 
     def checkpoint(iteration: int) -> None:
@@ -136,10 +154,11 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
             "algo": "expert", "iteration": iteration, "config": to_dict(cfg), "env": env_info,
             "policy_arch": arch.to_dict(), "policy": policy.state_dict(), "obs_norm": obs_norm.state_dict(),
             "nets": {k: n.state_dict() for k, n in nets.items()},
-            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen),
+            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen), "env_steps": steps_done,
         })
+        guard.saved(iteration)
 
-    steps_done = 0
+    steps_done = resumed.env_steps
     t_start = time.perf_counter()
     for it in range(start + 1, cfg.iterations + 1):
         for group in opt.param_groups:
@@ -148,6 +167,7 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
         steps_done += int(roll.mask.sum())
         # Rewards divided by the running std of the discounted return.
         reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
+        guard.value(it, "environment reward", raw_rewards)
         r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)
         adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
         roll = roll.with_(rewards=r, advantages=adv, returns=ret)
@@ -158,10 +178,13 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
                 new_v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts)
                 loss, stats = ppo_loss(dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v,
                                        b.values, b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, None, cfg.vf_coef, cfg.ent_coef)
+                guard.value(it, "policy loss (PPO)", stats["ppo/policy_loss"])
+                guard.value(it, "value loss", stats["ppo/value_loss"])
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
+                guard.value(it, "policy and value gradient norm", torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm))
                 opt.step()
+        guard.params(it, nets)
         if it % cfg.log_every == 0 or it in (1, cfg.iterations):
             elapsed = time.perf_counter() - t_start
             stats.update({"env/return": raw_rewards.sum(0).mean().item(), "env/steps": float(steps_done),
