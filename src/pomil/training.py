@@ -243,20 +243,20 @@ class DivergenceGuard:
         if self.on_stop is not None:
             self.on_stop()
         where = f"iteration {step}" if isinstance(step, int) else step
-        hint = self.hints.get(quantity.split()[0].split("/")[0], "")
+        hint = self.hints.get(quantity.split()[0], "")
+        lower = ("a lower " + hint.split(" (")[0]) if hint.count("(now") == 1 else "lower learning rates"
         if self.saved_iteration > 0 and self.ckpt_path.exists():
-            after = (f"{self.ckpt_path} (iteration {self.saved_iteration}) is unchanged: continue it with --resume"
-                     f"{' and a lower ' + hint.split(' (')[0] if hint else ''}")
+            after = f"{self.ckpt_path} (iteration {self.saved_iteration}) is unchanged: continue it with --resume and {lower}"
         else:
-            after = "no checkpoint of this run was written: start it again" + (" with a lower " + hint.split(" (")[0]
-                                                                               if hint else "")
-        raise DivergenceError(f"{where}: {quantity} is {bad} (the run diverged)"
-                              f"{'; likely cause: ' + hint + ' too high' if hint else ''}; {after}")
+            after = f"no checkpoint of this run was written: start it again with {lower}"
+        raise DivergenceError(f"{where}: {quantity} is {bad} (the run diverged); "
+                              f"{'try a lower ' + hint + '; ' if hint else ''}{after}")
 
 
-def lr_hint(config: Any, field: str) -> str:
-    """``--lr-critic (now 10000.0)`` for a config field: the flag and its current value."""
-    return f"--{field.replace('_', '-')} (now {getattr(config, field)})"
+def lr_hint(config: Any, *fields: str) -> str:
+    """``--lr-value (now 0.0005) or --lr-critic (now 1e+04)``: the flags of config fields and their values."""
+    flags = [f"--{f.replace('_', '-')} (now {getattr(config, f):g})" for f in fields]
+    return " or ".join([", ".join(flags[:-1]), flags[-1]] if len(flags) > 1 else flags)
 
 
 # ------------------------------------------------------------------------ lock

@@ -299,10 +299,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
 
 def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
     """The option to lower when a quantity (named by its first word) turns NaN or inf."""
-    return {"policy": lr_hint(cfg, "lr"), "ppo": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr_value"),
+    rewards = ("lr_critic", "lr_posterior") if PRESETS[cfg.learner]["codes"] else ("lr_critic",)
+    return {"policy": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr_value", *rewards),  # value targets are rewards
             "critic": lr_hint(cfg, "lr_critic"), "posterior": lr_hint(cfg, "lr_posterior"),
-            "reward": f"{lr_hint(cfg, 'lr_critic')} or {lr_hint(cfg, 'lr_posterior')}",
-            "warm-start": lr_hint(cfg, "bc_init_lr")}
+            "reward": lr_hint(cfg, *rewards), "warm-start": lr_hint(cfg, "bc_init_lr")}
 
 
 def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> Path:

@@ -145,7 +145,7 @@ def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.env_id} {cfg.task}",
                        key_stats=("env/return", "ppo/approx_kl"))
     lr = lr_hint(cfg, "lr")
-    guard = DivergenceGuard(ckpt_path, {"policy": lr, "ppo": lr, "value": lr}, start, logger.close)
+    guard = DivergenceGuard(ckpt_path, {"policy": lr, "value": lr}, start, logger.close)
     env_info = {"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}
 
     def checkpoint(iteration: int) -> None:
