@@ -262,6 +262,22 @@ def _format_metrics(m: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def matching_demos(path: str, policies: list[tuple[str, Any]]) -> Any:
+    """Demonstrations checked against their own environment and against every (checkpoint,
+    policy)'s: the same environment id and the same observation and action sizes."""
+    from pomil.data import Demonstrations, check_demos_env
+
+    demos = Demonstrations.load(path)
+    env_id, _ = check_demos_env(demos, path)
+    for checkpoint, policy in policies:
+        if env_id != policy.env.get("id"):
+            raise PomilError(f"{path}: demonstrations of {env_id}, but {checkpoint} was trained on {policy.env.get('id')}")
+        if (demos.obs_dim, demos.act_dim) != (policy.obs_dim, policy.act_dim):
+            raise PomilError(f"{path}: observations {demos.obs_dim} / actions {demos.act_dim} wide, but {checkpoint}'s "
+                             f"policy takes {policy.obs_dim} / {policy.act_dim}")
+    return demos
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
     from pomil.eval.rollout import evaluate_circles
@@ -269,21 +285,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
     policy = TrainedPolicy.load(args.checkpoint)
+    demos = matching_demos(args.demos, [(args.checkpoint, policy)]) if args.demos else None
     if policy.env.get("id") != "pomil/Circles-v0":
-        return _evaluate_tasks(policy, args)
+        return _evaluate_tasks(policy, args, demos)
+    if demos is not None:
+        print("pomil: note: --demos matches the checkpoint but circles evaluation does not use it", file=sys.stderr)
     metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, args.deterministic, args.none_threshold)
     print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
     return 0
 
 
-def _evaluate_tasks(policy, args: argparse.Namespace) -> int:
-    from pomil.data import Demonstrations
+def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
     from pomil.eval.locomotion import evaluate_tasks, reference_of
 
-    if not args.demos:
+    if demos is None:
         raise PomilError(f"evaluate: a {policy.env.get('id')} policy needs --demos (the demonstrations whose "
                          "expert returns normalise the scores)")
-    reference = reference_of(Demonstrations.load(args.demos).metadata, args.demos)
+    reference = reference_of(demos.metadata, args.demos)
     m = evaluate_tasks(policy, reference, args.episodes_per_code, args.seed, deterministic=not args.stochastic)
     if args.json:
         print(json.dumps(m, indent=2))
@@ -298,22 +316,28 @@ def _evaluate_tasks(policy, args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
-    from pomil.data import Demonstrations
     from pomil.eval.plots import figure1
     from pomil.eval.rollout import rollout_circles
 
     panels = []
+    policies = [(ckpt, TrainedPolicy.load(ckpt)) for ckpt in args.checkpoints]
+    for ckpt, policy in policies:
+        if policy.env.get("id") != "pomil/Circles-v0":
+            raise PomilError(f"{ckpt}: plot draws circles policies; this one was trained on {policy.env.get('id')}")
     if args.demos:
-        demos = Demonstrations.load(args.demos)
+        demos = matching_demos(args.demos, policies)
+        if demos.metadata.get("env_id") != "pomil/Circles-v0":
+            raise PomilError(f"{args.demos}: plot draws circles demonstrations; these are of {demos.metadata.get('env_id')}")
         if demos.states is None or demos.labels is None:
             raise PomilError(f"{args.demos}: field 'states'/'labels': expected both for plotting experts")
+        if len(set(demos.episode_lengths.tolist())) != 1:
+            raise PomilError(f"{args.demos}: field 'episode_bounds': expected episodes of one length for plotting experts")
         T = int(demos.episode_lengths[0])
         pos = demos.states.reshape(demos.num_episodes, T, -1)[:, :, :2]
         # states hold the position *before* each action: shift by one to show visited points
         pos = pos[:, 1:]
         panels.append(("experts", pos, demos.labels, "mode"))
-    for ckpt in args.checkpoints:
-        policy = TrainedPolicy.load(ckpt)
+    for ckpt, policy in policies:
         roll = rollout_circles(policy, args.episodes_per_code, args.seed, args.deterministic)
         panels.append((f"{policy.algo}: {Path(ckpt).parent.name or ckpt}", roll["positions"], roll["codes"], "code"))
     if not panels:

@@ -312,6 +312,13 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
         except ValueError as err:
             raise DataError("metadata.observation_mask", str(err), source) from None
     demos.check_compatible(obs_dim, act_dim, source)
+    if demos.states is not None:
+        from pomil.envs import state_dim
+
+        want = state_dim(env_id, kwargs)
+        if demos.states.shape[1] != want:
+            raise DataError("states", f"expected {want} columns (the full state of {env_id}), got {demos.states.shape[1]}",
+                            source)
     return env_id, kwargs
 
 
