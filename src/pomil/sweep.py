@@ -6,7 +6,9 @@ grid point is a *setting*; each (setting, seed) a run in
 ``OUT/<setting>/seed<k>/`` with its checkpoint, logs and ``result.json``
 (the final evaluation: mode metrics on circles, per-task figures on
 multi-task demonstrations).  A run whose ``result.json`` exists is finished
-and is not run again.  The sweep writes ``OUT/sweep.json`` (every run, failed
+and is not run again; one with a checkpoint but no ``result.json`` (its
+worker died, and Ray retries it, or the sweep was stopped) resumes from
+its checkpoint.  The sweep writes ``OUT/sweep.json`` (every run, failed
 ones with their error), ``OUT/table.md`` (mean +- std over seeds per setting)
 and ``OUT/figure.png`` (the matching reproduction's figure: trajectories
 coloured by code on circles, normalised-return curves on tasks).
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,7 +82,12 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
         fixed["learner"] = learner
     cfg = from_dict(cls, {**values, **fixed}, source=f"sweep run {run_dir}")
     t0 = time.perf_counter()
-    ckpt = train(cfg)
+    # A checkpoint without result.json is a run whose worker died (Ray retries it) or that
+    # was interrupted: continue it from its last checkpoint instead of starting over.
+    resume = (Path(run_dir) / "checkpoint.pt").exists()
+    if resume:
+        print(f"{run_dir}: resuming from its checkpoint", file=sys.stderr, flush=True)
+    ckpt = train(cfg, resume=resume)
     wall = time.perf_counter() - t0
     policy = TrainedPolicy.load(ckpt)
     result: dict[str, Any] = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "checkpoint": str(ckpt)}
