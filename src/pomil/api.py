@@ -57,9 +57,18 @@ class TrainedPolicy:
             if ckpt.get("obs_norm") is not None:
                 obs_norm = RunningNorm(policy.arch.obs_dim)
                 obs_norm.load_state_dict(ckpt["obs_norm"])
-        except (KeyError, TypeError, RuntimeError) as err:
-            raise PomilError(f"{path}: checkpoint has no usable policy ({str(err).splitlines()[0][:160]})") from None
-        return cls(policy, str(ckpt.get("algo", "?")), dict(ckpt.get("env", {})), device, obs_norm)
+        except Exception as err:  # a damaged file: torch and the architecture raise many types
+            first = (str(err).strip().splitlines() or [""])[0][:160]
+            raise PomilError(f"{path}: checkpoint has no usable policy ({type(err).__name__}: {first})") from None
+        env = ckpt.get("env", {})
+        if not isinstance(env, dict) or not isinstance(env.get("id", ""), str) or not isinstance(env.get("kwargs") or {}, dict):
+            raise PomilError(f"{path}: checkpoint's 'env' is not an environment description (got {env!r:.160})")
+        try:
+            return cls(policy, str(ckpt.get("algo", "?")), dict(env), device, obs_norm)
+        except Exception as err:  # its environment cannot be built (unknown id, bad keywords)
+            first = (str(err).strip().splitlines() or [""])[0][:160]
+            raise PomilError(f"{path}: checkpoint's environment {env.get('id')!r} cannot be built "
+                             f"({type(err).__name__}: {first})") from None
 
     def save(self, path: str | Path) -> None:
         """Write the policy alone (no critic, optimiser or RNG state): a small

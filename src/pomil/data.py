@@ -201,8 +201,9 @@ class Demonstrations:
                         raise DataError("metadata", "expected a JSON object", src)
         except DataError:
             raise
-        except (OSError, zipfile.BadZipFile, EOFError) as err:
-            raise DataError("(file)", f"unreadable .npz archive ({err})", src) from None
+        except Exception as err:  # a corrupted archive: zipfile, zlib and numpy raise many types
+            first = (str(err).strip().splitlines() or [""])[0][:160]
+            raise DataError("(file)", f"unreadable .npz archive ({type(err).__name__}: {first})", src) from None
         try:
             return cls(metadata=metadata, **values)
         except DataError as err:

@@ -117,15 +117,18 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return payload
 
 
-# Settings a resumed run may change: they do not alter what is computed, except the
-# learning rates, which may be lowered to continue a run that diverged.
-RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device",
+# Settings a resumed run may change: they do not alter what is computed (``out``: a run
+# directory may be moved), except the learning rates, which may be lowered to continue
+# a run that diverged.
+RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device", "out",
                                "lr", "lr_value", "lr_critic", "lr_posterior", "bc_init_lr"})
 
 
 def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str | Path) -> None:
     """Refuse to resume a run under a config that would change its results."""
     saved = ckpt.get("config", {})
+    if not isinstance(saved, dict):
+        raise TypeError("config")
     changed = sorted(k for k in set(config) | set(saved) if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
     if changed:
         raise PomilError(f"{path}: cannot resume with a different config (changed: {', '.join(changed)})")
@@ -154,7 +157,10 @@ def resume_run(
     if not ckpt_path.exists():
         raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {ckpt_path.parent})")
     ckpt = load_checkpoint(ckpt_path, device)
-    check_resume_config(ckpt, config, ckpt_path)
+    try:
+        check_resume_config(ckpt, config, ckpt_path)
+    except (TypeError, ValueError, RuntimeError, AttributeError):
+        raise PomilError(f"{ckpt_path}: cannot resume from this checkpoint (its 'config' is damaged)") from None
     done = ckpt.get("iteration")
     if not isinstance(done, int) or isinstance(done, bool) or done < 0:
         raise PomilError(f"{ckpt_path}: checkpoint has no usable 'iteration' (got {done!r})")
@@ -169,6 +175,7 @@ def resume_run(
         for k, opt in optimizers.items():
             lrs = [g["lr"] for g in opt.param_groups]
             opt.load_state_dict(ckpt["optimizers"][k])
+            check_optimizer_state(opt)
             for g, lr in zip(opt.param_groups, lrs):
                 g["lr"] = lr
         restore_rng(ckpt["rng"], generator)
@@ -177,6 +184,23 @@ def resume_run(
         raise PomilError(f"{ckpt_path}: cannot resume from this checkpoint ({type(err).__name__}: {first})") from None
     steps = ckpt.get("env_steps", 0)
     return RunStart(done, int(steps) if isinstance(steps, (int, float)) and math.isfinite(steps) else 0)
+
+
+def check_optimizer_state(opt: torch.optim.Optimizer) -> None:
+    """ValueError unless every parameter's state has the same keys, each a tensor of the
+    parameter's shape, and ``step`` is one number: load_state_dict takes a damaged state,
+    and the next step would fail."""
+    states = [(p, opt.state[p]) for group in opt.param_groups for p in group["params"] if p in opt.state]
+    keys = set().union(*(s.keys() for _, s in states)) if states else set()
+    for p, state in states:
+        if set(state) != keys:
+            raise ValueError(f"optimizer state keys {sorted(state)}, expected {sorted(keys)}")
+        for key, v in state.items():
+            if key == "step":
+                if not (isinstance(v, (int, float)) or (isinstance(v, torch.Tensor) and v.numel() == 1)):
+                    raise ValueError(f"optimizer 'step' is {v!r:.60}")
+            elif not isinstance(v, torch.Tensor) or v.shape != p.shape:
+                raise ValueError(f"optimizer state '{key}' is not a tensor of its parameter's shape {tuple(p.shape)}")
 
 
 def rng_state(generator: torch.Generator) -> dict[str, torch.Tensor]:
