@@ -67,9 +67,11 @@ class CirclesDemosConfig:
     modes: Literal["two", "four"] = option("two", "circles preset: two (the paper's) or four")
     radius: float = option(5.0, "radius of every circle", within="(0, inf)")
     episode_length: int = option(33, "steps per episode (33 = one loop of a radius-5 circle)", within="[1, inf)")
-    history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions", within="[1, inf)")
+    history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions",
+                          within="[1, inf)")
     action_type: Literal["vector", "angle"] = option("vector", "action format: 2-D direction vector or heading angle")
-    noise_std: float = option(0.36787944117144233, "std of the experts' heading noise in radians (exp(-1))", within="[0, inf)")
+    noise_std: float = option(0.36787944117144233, "std of the experts' heading noise in radians (exp(-1))",
+                              within="[0, inf)")
     seed: int = option(0, "random seed", within="[0, 4294967295]")
 
 
@@ -144,8 +146,10 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
 @dataclass(frozen=True)
 class MergeDemosConfig:
     out: str = option("", "output .npz file (written atomically)")
-    proportions: tuple[float, ...] = option((), "share of each file's episodes, e.g. 1,1 (default: equal)", within="[0, inf)")
-    episodes: int = option(0, "episodes in total (0: as many as the files allow in these proportions)", within="[0, inf)")
+    proportions: tuple[float, ...] = option((), "share of each file's episodes, e.g. 1,1 (default: equal)",
+                                            within="[0, inf)")
+    episodes: int = option(0, "episodes in total (0: as many as the files allow in these proportions)",
+                           within="[0, inf)")
     seed: int = option(0, "random seed (which episodes, their order)", within="[0, 4294967295]")
 
 

@@ -260,7 +260,8 @@ class RunConfig:
     out: str = option("runs/run", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     seed: int = option(0, "random seed (same seed, same run on CPU)", within="[0, 4294967295]")
     log_every: int = option(25, "iterations between log rows", within="[1, inf)")
-    checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)", within="[1, inf)")
+    checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)",
+                                   within="[1, inf)")
     device: str = option("cpu", "cpu, cuda, cuda:N or auto")
     progress: bool = option(True, "show a progress bar")
 

@@ -285,10 +285,12 @@ class HopperReproConfig(RayOptions):
     seeds: int = option(3, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"), "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
     bc_iterations: int = option(500, "gradient steps for behaviour cloning (64 episodes each)", within="[1, inf)")
-    adversarial_iterations: int = option(30, "iterations for gail, infogail and infogail-pomdp (x 256 x 128 env steps)", within="[1, inf)")
+    adversarial_iterations: int = option(30, "iterations for gail, infogail and infogail-pomdp (x 256 x 128 env steps)",
+                                         within="[1, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the Hopper recipe "
                                          "(pomil.reproduce.HOPPER_ADVERSARIAL) and the defaults")
-    episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)", within="[1, inf)")
+    episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)",
+                                    within="[1, inf)")
     progress: bool = option(True, "show progress bars")
 
     def __post_init__(self) -> None:

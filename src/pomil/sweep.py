@@ -39,7 +39,8 @@ class SweepConfig:
     ray: bool = option(True, "run on Ray (a local Ray started in-process unless --address); --no-ray: one after another")
     address: str = option("", "address of an existing Ray cluster (paths must be on storage every node sees)")
     cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)", within="(0, inf)")
-    episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run", within="[1, inf)")
+    episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run",
+                                    within="[1, inf)")
 
     def __post_init__(self) -> None:
         check_fields(self)

@@ -75,8 +75,10 @@ class AdversarialConfig(RunConfig):
     iterations: int = option(300, "training iterations (rollout + critic + posterior + PPO)", within="[1, inf)")
     num_envs: int = option(64, "episodes collected per iteration", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
-                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on", within="[0, inf)")
-    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)", within="[-1, inf)")
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on",
+                                     within="[0, inf)")
+    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)",
+                            within="[-1, inf)")
     hidden_size: int = option(128, "dense width and GRU cells of every network", within="[1, inf)")
     lr: float = option(2e-4, "policy learning rate (Adam)", within="(0, inf)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
@@ -88,10 +90,12 @@ class AdversarialConfig(RunConfig):
     critic_batch: int = option(64, "expert and policy episodes per critic update", within="[1, inf)")
     expert_action_noise: bool = option(False, "add the policy's current action noise to the demonstrations' actions the critic "
                                        "sees, so that it cannot tell deterministic experts from the policy by action jitter")
-    weight_clip: float = option(0.01, "clip Wasserstein critic weights to +-this after each update (0: off; never for GAIL's GAN critic)", within="[0, inf)")
+    weight_clip: float = option(0.01, "clip Wasserstein critic weights to +-this after each update (0: off; never for GAIL's GAN critic)",
+                                within="[0, inf)")
     gradient_penalty: float = option(0.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam", within="[0, inf)")
     posterior_steps: int = option(1, "posterior updates per iteration", within="[1, inf)")
-    mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)", within="[0, inf)")
+    mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)",
+                              within="[0, inf)")
     ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
     gamma: float = option(0.99, "discount", within="(0, 1]")
@@ -102,7 +106,8 @@ class AdversarialConfig(RunConfig):
     minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
     update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
     window_length: int = option(8, "steps per window in window mode", within="[1, inf)")
-    bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)", within="[0, inf)")
+    bc_init_iterations: int = option(300, "behaviour-cloning steps on the demonstrations before adversarial training (InfoGAIL's warm start; 0: off)",
+                                     within="[0, inf)")
     bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start", within="(0, inf)")
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
     bc_init_codes: Literal["random", "mixture"] = option("random", "codes in the warm start: random per episode (InfoGAIL), or "
@@ -112,13 +117,17 @@ class AdversarialConfig(RunConfig):
     log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
     bc_weight: float = option(0.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
-                                    "policy's PPO loss (keeps the policy near the demonstrations; 0: off)", within="[0, inf)")
+                                    "policy's PPO loss (keeps the policy near the demonstrations; 0: off)",
+                                    within="[0, inf)")
     policy_warmup_iterations: int = option(0, "first iterations in which only the critic, posterior and value learn "
-                                              "(the warm-started policy waits for a trained value and critic)", within="[0, inf)")
-    eval_every: int = option(25, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)", within="[0, inf)")
+                                              "(the warm-started policy waits for a trained value and critic)",
+                                              within="[0, inf)")
+    eval_every: int = option(25, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)",
+                             within="[0, inf)")
     eval_episodes: int = option(50, "evaluation rollouts per code", within="[1, inf)")
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
-    checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)", within="[1, inf)")
+    checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)",
+                                   within="[1, inf)")
 
     def __post_init__(self) -> None:
         super().__post_init__()  # every field in its interval (see the option declarations)

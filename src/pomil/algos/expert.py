@@ -50,10 +50,12 @@ class ExpertConfig(RunConfig):
                                              "and setting, e.g. ctrl_cost_weight=0.05,max_episode_steps=200")
     observation_mask: str = option("", "what the expert observes: '' (everything), positions-only, or comma-separated indices")
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)", within="[1, inf)")
+    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
+                             within="[1, inf)")
     num_envs: int = option(64, "environment copies stepped together", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
-                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on", within="[0, inf)")
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on",
+                                     within="[0, inf)")
     hidden_size: int = option(64, "width of the policy's and value's hidden layers", within="[1, inf)")
     lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)", within="(0, inf)")
     epochs: int = option(10, "PPO epochs per iteration", within="[1, inf)")
@@ -66,7 +68,8 @@ class ExpertConfig(RunConfig):
     max_grad_norm: float = option(0.5, "gradient-norm clip", within="(0, inf)")
     log_std_init: float = option(0.0, "initial log std of the policy", within="(-inf, inf)")
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
-    checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)", within="[1, inf)")
+    checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)",
+                                   within="[1, inf)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
