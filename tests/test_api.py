@@ -96,3 +96,66 @@ def test_saved_policy_loads_and_acts_the_same(tmp_path):
         pol.reset(4, codes=[0, 1, 1, 0], seed=3)
     for o in obs:
         np.testing.assert_array_equal(p.act(o), q.act(o))
+
+
+@pytest.mark.parametrize("num_envs", [0, -1, 2.5, "3", True, None])
+def test_reset_refuses_a_bad_num_envs_naming_it(num_envs):
+    from pomil.errors import InvalidArgument
+
+    with pytest.raises(InvalidArgument, match=f"num_envs must be a positive integer, got {num_envs!r}"):
+        _policy().reset(num_envs)
+
+
+@pytest.mark.parametrize("codes", [[0.5, 1.7], [0.0, 1.0], ["0", "1"], "01", [True, False], [[0, 1], [1]], [0, 1, 1]])
+def test_reset_refuses_codes_that_are_not_integers_in_range(codes):
+    p = _policy(num_codes=2)
+    with pytest.raises(ValueError, match=r"codes must be 2 integers in \[0, 2\)"):
+        p.reset(2, codes=codes)
+    p.reset(2, codes=np.array([1, 0], dtype=np.int32))  # any integer dtype, and tensors, are fine
+    p.reset(2, codes=torch.tensor([1, 1]))
+
+
+def test_a_bad_device_is_named_as_a_device(tmp_path):
+    _policy().save(tmp_path / "p.pt")
+    with pytest.raises(PomilError, match=r"^device 'tpu': expected cpu, cuda, cuda:N, mps or auto$"):
+        TrainedPolicy.load(tmp_path / "p.pt", device="tpu")
+
+
+def test_nan_observations_are_refused_before_they_touch_the_recurrent_state():
+    p = _policy()
+    p.reset(2, seed=0)
+    obs = np.zeros((2, 2), np.float32)
+    first = p.act(obs, deterministic=True)
+    h = p._h.clone()
+    bad = obs.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match=r"observations must be finite; rows \[1\] hold NaN/inf"):
+        p.act(bad)
+    with pytest.raises(ValueError, match="observations must be finite"):
+        p.act(torch.full((2, 2), float("inf")))
+    with pytest.raises(ValueError, match=r"observations must be a \(2, 2\) array of numbers"):
+        p.act([["a", "b"], ["c", "d"]])
+    assert torch.equal(p._h, h)  # the state is as before the refused call
+    q = _policy()
+    q.reset(2, seed=0)
+    q.act(obs, deterministic=True)
+    np.testing.assert_array_equal(p.act(obs, deterministic=True), q.act(obs, deterministic=True))
+    assert np.isfinite(first).all()
+
+
+def test_nan_observations_are_refused_under_python_O(tmp_path):
+    """No assert statements: the checks hold with optimisations on."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, torch; from pomil.api import TrainedPolicy; from pomil.nn.policy import GaussianPolicy, "
+            "PolicyArch\np = TrainedPolicy(GaussianPolicy(PolicyArch(2, 2, 'gru', 8, 2)), 't', {'id': 'pomil/Circles-v0'})\n"
+            "p.reset(2, seed=0)\ntry:\n    p.act(np.array([[0, 0], [np.nan, 0]], np.float32))\nexcept ValueError as e:\n"
+            "    print('refused:', e)\ntry:\n    p.reset(0)\nexcept ValueError as e:\n    print('refused:', e)\n")
+    src = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "src")
+    r = subprocess.run([sys.executable, "-O", "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONPATH": src})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == ["refused: observations must be finite; rows [1] hold NaN/inf (state unchanged)",
+                                     "refused: num_envs must be a positive integer, got 0"]

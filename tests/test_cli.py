@@ -91,3 +91,56 @@ def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     assert settings["gradient_penalty"] == 10.0 and settings["bc_init_iterations"] == 3 and settings["iterations"] == 2
     assert "| bc-mlp |" in (out / "table.md").read_text()
     assert (out / "figure.png").stat().st_size > 1000
+
+
+def _with(demos_path, tmp_path, name, **changes):
+    """A copy of the test demonstrations with some arrays or metadata changed."""
+    from pomil.data import Demonstrations
+
+    d = Demonstrations.load(demos_path)
+    md = {**d.metadata, **changes.pop("metadata", {})}
+    fields = {"observations": d.observations, "actions": d.actions, "episode_bounds": d.episode_bounds,
+              "labels": d.labels, "states": d.states, **changes}
+    out = tmp_path / name
+    Demonstrations(**fields, metadata=md).save(out)
+    return out
+
+
+def test_mismatched_demonstrations_are_refused_by_train_plot_and_evaluate(demos_path, tmp_path, capsys):
+    import numpy as np
+
+    run = tmp_path / "run"
+    assert main(["train", "bc", "--demos", str(demos_path), "--out", str(run), "--iterations", "2", "--policy", "mlp",
+                 "--hidden-size", "8", "--no-progress"]) == 0
+    capsys.readouterr()
+    from pomil.data import Demonstrations
+
+    d = Demonstrations.load(demos_path)
+    wide = _with(demos_path, tmp_path, "wide.npz", states=np.concatenate([d.states, d.states[:, :1]], 1))
+    history = _with(demos_path, tmp_path, "h2.npz", observations=np.concatenate([d.observations, d.observations], 1),
+                    metadata={"env_kwargs": {**d.metadata["env_kwargs"], "history": 2}})
+    other = _with(demos_path, tmp_path, "pendulum.npz", observations=np.concatenate([d.observations, d.actions[:, :1]], 1),
+                  actions=d.actions[:, :1], states=None,
+                  metadata={"env_id": "Pendulum-v1", "env_kwargs": {}, "observation_mask": None})
+    cases = [
+        (["train", "bc", "--demos", str(wide), "--out", str(tmp_path / "no")],
+         f"{wide}: field 'states': expected 2 columns (the full state of pomil/Circles-v0), got 3"),
+        (["plot", str(run), "--demos", str(wide), "--out", str(tmp_path / "f.png")],
+         f"{wide}: field 'states': expected 2 columns"),
+        (["evaluate", str(run), "--demos", str(wide)], f"{wide}: field 'states': expected 2 columns"),
+        (["plot", str(run), "--demos", str(other), "--out", str(tmp_path / "f.png")],
+         f"{other}: demonstrations of Pendulum-v1, but {run} was trained on pomil/Circles-v0"),
+        (["evaluate", str(run), "--demos", str(other)],
+         f"{other}: demonstrations of Pendulum-v1, but {run} was trained on pomil/Circles-v0"),
+        (["evaluate", str(run), "--demos", str(history)],
+         f"{history}: observations 4 / actions 2 wide, but {run}'s policy takes 2 / 2"),
+        (["plot", "--demos", str(other), "--out", str(tmp_path / "f.png")],
+         f"{other}: plot draws circles demonstrations; these are of Pendulum-v1"),
+    ]
+    for argv, text in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith(f"pomil: error: {text}") and err.count("\n") == 1, (argv, err)
+    assert not (tmp_path / "no").exists() and not (tmp_path / "f.png").exists()
+    assert main(["evaluate", str(run), "--demos", str(demos_path), "--episodes-per-code", "2"]) == 0
+    assert "circles evaluation does not use it" in capsys.readouterr().err

@@ -76,3 +76,35 @@ def test_reproduce_on_ray_gives_the_sequential_results(tmp_path, demos_path):
         assert a["mean_return"] == pytest.approx(b["mean_return"], rel=1e-5)  # 1 vs 2 torch threads: last-digit sums
     assert (tmp_path / "runs-par" / "bc-mlp" / "seed1" / "checkpoint.pt").exists()
     assert (tmp_path / "par" / "figure.png").exists()
+
+
+def test_a_run_whose_worker_is_killed_resumes_from_its_checkpoint_on_retry(tmp_path, demos_path):
+    """SIGKILL the Ray worker (its pid is in the run's lock file) once a checkpoint exists:
+    Ray retries the task, and the retry continues from the checkpoint instead of starting over."""
+    import csv
+    import os
+    import signal
+    import time
+
+    from pomil.training import load_checkpoint
+
+    config = tmp_path / "sweep.json"
+    config.write_text(json.dumps({"learner": "bc", "demos": str(demos_path), "iterations": 1500, "policy": "mlp",
+                                  "hidden_size": 16, "batch_episodes": 16, "checkpoint_every": 100, "log_every": 10}))
+    out = tmp_path / "sweep"
+    run = out / "base" / "seed0"
+    sweep = subprocess.Popen([sys.executable, "-m", "pomil.cli", "sweep", str(config), "--seeds", "1", "--out", str(out),
+                              "--episodes-per-code", "2"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 240
+    while not (run / "checkpoint.pt").exists() and time.monotonic() < deadline and sweep.poll() is None:
+        time.sleep(0.02)
+    killed = json.loads((run / "run.lock").read_text())["pid"]
+    os.kill(killed, signal.SIGKILL)
+    output, _ = sweep.communicate(timeout=300)
+    assert sweep.returncode == 0, output
+    assert load_checkpoint(run)["iteration"] == 1500 and (run / "result.json").exists()
+    rows = list(csv.DictReader(open(run / "metrics.csv")))
+    assert [int(r["iteration"]) for r in rows] == [1, *range(10, 1501, 10)]  # one continuous log
+    elapsed = [float(r["time/elapsed_s"]) for r in rows]
+    restarts = [i for i in range(1, len(rows)) if elapsed[i] < elapsed[i - 1]]
+    assert len(restarts) == 1 and int(rows[restarts[0]]["iteration"]) > 100, output  # resumed, past iteration 100

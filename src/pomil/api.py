@@ -19,10 +19,17 @@ import numpy as np
 import torch
 
 from pomil.envs import executed_actions_fn
-from pomil.errors import PomilError
+from pomil.errors import InvalidArgument, PomilError
 from pomil.nn.normalize import RunningNorm
 from pomil.nn.policy import GaussianPolicy, PolicyArch
-from pomil.training import load_checkpoint, save_checkpoint
+from pomil.training import load_checkpoint, resolve_device, save_checkpoint
+
+
+def _count(name: str, value: Any) -> int:
+    """A positive integer argument (numpy integers too; not bools, floats or strings)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InvalidArgument(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
 
 
 class TrainedPolicy:
@@ -41,6 +48,7 @@ class TrainedPolicy:
 
     @classmethod
     def load(cls, path: str | Path, device: torch.device | str = "cpu") -> "TrainedPolicy":
+        device = resolve_device(device)  # a bad device is reported as one, before the file is read
         ckpt = load_checkpoint(path, map_location=device)
         try:
             policy = GaussianPolicy(PolicyArch(**ckpt["policy_arch"]))
@@ -49,9 +57,18 @@ class TrainedPolicy:
             if ckpt.get("obs_norm") is not None:
                 obs_norm = RunningNorm(policy.arch.obs_dim)
                 obs_norm.load_state_dict(ckpt["obs_norm"])
-        except (KeyError, TypeError, RuntimeError) as err:
-            raise PomilError(f"{path}: checkpoint has no usable policy ({str(err).splitlines()[0][:160]})") from None
-        return cls(policy, str(ckpt.get("algo", "?")), dict(ckpt.get("env", {})), device, obs_norm)
+        except Exception as err:  # a damaged file: torch and the architecture raise many types
+            first = (str(err).strip().splitlines() or [""])[0][:160]
+            raise PomilError(f"{path}: checkpoint has no usable policy ({type(err).__name__}: {first})") from None
+        env = ckpt.get("env", {})
+        if not isinstance(env, dict) or not isinstance(env.get("id", ""), str) or not isinstance(env.get("kwargs") or {}, dict):
+            raise PomilError(f"{path}: checkpoint's 'env' is not an environment description (got {env!r:.160})")
+        try:
+            return cls(policy, str(ckpt.get("algo", "?")), dict(env), device, obs_norm)
+        except Exception as err:  # its environment cannot be built (unknown id, bad keywords)
+            first = (str(err).strip().splitlines() or [""])[0][:160]
+            raise PomilError(f"{path}: checkpoint's environment {env.get('id')!r} cannot be built "
+                             f"({type(err).__name__}: {first})") from None
 
     def save(self, path: str | Path) -> None:
         """Write the policy alone (no critic, optimiser or RNG state): a small
@@ -75,7 +92,14 @@ class TrainedPolicy:
 
     def reset(self, num_envs: int, codes: Sequence[int] | np.ndarray | torch.Tensor | None = None, seed: int | None = None) -> None:
         """Start ``num_envs`` episodes.  ``codes``: one code per episode
-        (default: 0, 1, ..., K-1, 0, 1, ...); ignored without codes."""
+        (default: 0, 1, ..., K-1, 0, 1, ...); ignored without codes.  Bad arguments raise
+        :class:`pomil.errors.InvalidArgument` (a ValueError) naming the argument."""
+        num_envs = _count("num_envs", num_envs)
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+            raise InvalidArgument(f"seed must be a non-negative integer or None, got {seed!r}")
+        c = None
+        if self.num_codes > 0:
+            c = torch.arange(num_envs) % self.num_codes if codes is None else self._codes_arg(codes, num_envs)
         self._n = num_envs
         self._h = self.policy.initial_state(num_envs, self.device)
         self._prev = torch.zeros(num_envs, self.act_dim, device=self.device)
@@ -86,11 +110,21 @@ class TrainedPolicy:
         else:
             self._gen.seed()
         self._codes = None
-        if self.num_codes > 0:
-            c = torch.arange(num_envs) % self.num_codes if codes is None else torch.as_tensor(np.asarray(codes), dtype=torch.long)
-            if c.shape != (num_envs,) or c.min() < 0 or c.max() >= self.num_codes:
-                raise PomilError(f"codes must be {num_envs} integers in [0, {self.num_codes}), got {c.tolist()}")
+        if c is not None:
             self._codes = torch.nn.functional.one_hot(c, self.num_codes).float().to(self.device)
+
+    def _codes_arg(self, codes: Any, num_envs: int) -> torch.Tensor:
+        """``codes`` as a (num_envs,) long tensor: integers only (no truncated floats, strings or bools)."""
+        try:
+            arr = codes.detach().cpu().numpy() if isinstance(codes, torch.Tensor) else np.asarray(codes)
+        except ValueError:  # ragged lists
+            raise InvalidArgument(f"codes must be {num_envs} integers in [0, {self.num_codes}), got {codes!r}") from None
+        want = f"codes must be {num_envs} integers in [0, {self.num_codes})"
+        if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
+            raise InvalidArgument(f"{want}, got {np.asarray(arr).tolist()!r} (dtype {arr.dtype})")
+        if arr.shape != (num_envs,) or arr.min() < 0 or arr.max() >= self.num_codes:
+            raise InvalidArgument(f"{want}, got {arr.tolist()}")
+        return torch.as_tensor(arr, dtype=torch.long)
 
     @torch.no_grad()
     def act(self, observations: np.ndarray | torch.Tensor, deterministic: bool = False) -> np.ndarray | torch.Tensor:
@@ -98,9 +132,17 @@ class TrainedPolicy:
         if self._h is None:
             raise RuntimeError("call reset(num_envs, codes) before act()")
         as_numpy = not isinstance(observations, torch.Tensor)
-        obs = torch.as_tensor(np.asarray(observations) if as_numpy else observations, dtype=torch.float32, device=self.device)
+        try:
+            obs = torch.as_tensor(np.asarray(observations) if as_numpy else observations, dtype=torch.float32,
+                                  device=self.device)
+        except (TypeError, ValueError):
+            raise InvalidArgument(f"observations must be a ({self._n}, {self.obs_dim}) array of numbers") from None
         if obs.shape != (self._n, self.obs_dim):
-            raise ValueError(f"observations must have shape ({self._n}, {self.obs_dim}), got {tuple(obs.shape)}")
+            raise InvalidArgument(f"observations must have shape ({self._n}, {self.obs_dim}), got {tuple(obs.shape)}")
+        finite = torch.isfinite(obs).all(-1)
+        if not bool(finite.all()):  # refused before it reaches (and poisons) the recurrent state
+            rows = (~finite).nonzero().flatten().tolist()
+            raise InvalidArgument(f"observations must be finite; rows {rows[:10]} hold NaN/inf (state unchanged)")
         if self.obs_norm is not None:
             obs = self.obs_norm(obs)
         dist, self._h = self.policy.step(obs, self._prev, self._h, self._start, self._codes)

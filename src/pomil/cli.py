@@ -3,7 +3,8 @@
 Every option of ``train`` (and of ``demos`` and ``reproduce``) is a field of a
 typed config dataclass; ``--config FILE.json`` sets any of them and flags
 override the file.  Problems with the user's input end with one line on
-stderr and exit status 2.
+stderr and exit status 2; a run that diverged (NaN or inf) ends the same way
+with exit status 3.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any, Callable, Literal, get_args, get_origin
 
 import numpy as np
 
-from pomil.config import field_help, from_dict, load_config_file, option
+from pomil.config import field_help, field_interval, from_dict, load_config_file, option
 from pomil.errors import PomilError
 
 
@@ -35,7 +36,8 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
         tp = hints[f.name]
         flag = "--" + f.name.replace("_", "-")
         default = f.default
-        help_text = f"{field_help(f)} (default: {default!r})"
+        interval = field_interval(f)
+        help_text = f"{field_help(f)} (default: {default!r}{'; in ' + interval.text if interval else ''})"
         if tp is bool:
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_text)
             continue
@@ -61,14 +63,16 @@ def config_from_args(cls: type, args: argparse.Namespace) -> Any:
 @dataclass(frozen=True)
 class CirclesDemosConfig:
     out: str = option("data/circles.npz", "output .npz file (written atomically)")
-    episodes: int = option(400, "episodes in total, split equally between the modes")
+    episodes: int = option(400, "episodes in total, split equally between the modes", within="[1, inf)")
     modes: Literal["two", "four"] = option("two", "circles preset: two (the paper's) or four")
-    radius: float = option(5.0, "radius of every circle")
-    episode_length: int = option(33, "steps per episode (33 = one loop of a radius-5 circle)")
-    history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions")
+    radius: float = option(5.0, "radius of every circle", within="(0, inf)")
+    episode_length: int = option(33, "steps per episode (33 = one loop of a radius-5 circle)", within="[1, inf)")
+    history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions",
+                          within="[1, inf)")
     action_type: Literal["vector", "angle"] = option("vector", "action format: 2-D direction vector or heading angle")
-    noise_std: float = option(0.36787944117144233, "std of the experts' heading noise in radians (exp(-1))")
-    seed: int = option(0, "random seed")
+    noise_std: float = option(0.36787944117144233, "std of the experts' heading noise in radians (exp(-1))",
+                              within="[0, inf)")
+    seed: int = option(0, "random seed", within="[0, 4294967295]")
 
 
 def cmd_demos(args: argparse.Namespace) -> int:
@@ -91,12 +95,12 @@ def cmd_demos(args: argparse.Namespace) -> int:
 @dataclass(frozen=True)
 class HopperDemosConfig:
     out: str = option("data/hopper-paper.npz", "output .npz file (written atomically)")
-    episodes: int = option(200, "episodes per task")
+    episodes: int = option(200, "episodes per task", within="[1, inf)")
     setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; standard: Hopper-v5's 1000 steps")
     forward_expert: str = option("data/experts/hopper-forward.pt", "forward expert checkpoint (pomil experts hopper)")
     backward_expert: str = option("data/experts/hopper-backward.pt", "backward expert checkpoint")
     observation_mask: str = option("positions-only", "what the learner observes: positions-only, or comma-separated indices")
-    seed: int = option(0, "random seed (reset noise, episode order)")
+    seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
 
 
 def _mask_arg(text: str) -> str | list[int] | None:
@@ -112,10 +116,10 @@ def _mask_arg(text: str) -> str | list[int] | None:
 class RecordDemosConfig:
     expert: str = option("", "expert checkpoint (pomil experts ...); demonstrations come from its environment and keywords")
     out: str = option("", "output .npz file (written atomically)")
-    episodes: int = option(200, "episodes to record")
+    episodes: int = option(200, "episodes to record", within="[1, inf)")
     task: str = option("", "task name kept as the episodes' label (default: forward/backward from forward_reward_weight)")
     observation_mask: str = option("positions-only", "what the learner observes: positions-only, comma-separated indices, or '' (all)")
-    seed: int = option(0, "random seed (reset noise)")
+    seed: int = option(0, "random seed (reset noise)", within="[0, 4294967295]")
 
 
 def cmd_demos_record(args: argparse.Namespace) -> int:
@@ -142,9 +146,11 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
 @dataclass(frozen=True)
 class MergeDemosConfig:
     out: str = option("", "output .npz file (written atomically)")
-    proportions: tuple[float, ...] = option((), "share of each file's episodes, e.g. 1,1 (default: equal)")
-    episodes: int = option(0, "episodes in total (0: as many as the files allow in these proportions)")
-    seed: int = option(0, "random seed (which episodes, their order)")
+    proportions: tuple[float, ...] = option((), "share of each file's episodes, e.g. 1,1 (default: equal)",
+                                            within="[0, inf)")
+    episodes: int = option(0, "episodes in total (0: as many as the files allow in these proportions)",
+                           within="[0, inf)")
+    seed: int = option(0, "random seed (which episodes, their order)", within="[0, 4294967295]")
 
 
 def cmd_demos_merge(args: argparse.Namespace) -> int:
@@ -260,6 +266,22 @@ def _format_metrics(m: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def matching_demos(path: str, policies: list[tuple[str, Any]]) -> Any:
+    """Demonstrations checked against their own environment and against every (checkpoint,
+    policy)'s: the same environment id and the same observation and action sizes."""
+    from pomil.data import Demonstrations, check_demos_env
+
+    demos = Demonstrations.load(path)
+    env_id, _ = check_demos_env(demos, path)
+    for checkpoint, policy in policies:
+        if env_id != policy.env.get("id"):
+            raise PomilError(f"{path}: demonstrations of {env_id}, but {checkpoint} was trained on {policy.env.get('id')}")
+        if (demos.obs_dim, demos.act_dim) != (policy.obs_dim, policy.act_dim):
+            raise PomilError(f"{path}: observations {demos.obs_dim} / actions {demos.act_dim} wide, but {checkpoint}'s "
+                             f"policy takes {policy.obs_dim} / {policy.act_dim}")
+    return demos
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
     from pomil.eval.rollout import evaluate_circles
@@ -267,21 +289,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
     policy = TrainedPolicy.load(args.checkpoint)
+    demos = matching_demos(args.demos, [(args.checkpoint, policy)]) if args.demos else None
     if policy.env.get("id") != "pomil/Circles-v0":
-        return _evaluate_tasks(policy, args)
+        return _evaluate_tasks(policy, args, demos)
+    if demos is not None:
+        print("pomil: note: --demos matches the checkpoint but circles evaluation does not use it", file=sys.stderr)
     metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, args.deterministic, args.none_threshold)
     print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
     return 0
 
 
-def _evaluate_tasks(policy, args: argparse.Namespace) -> int:
-    from pomil.data import Demonstrations
+def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
     from pomil.eval.locomotion import evaluate_tasks, reference_of
 
-    if not args.demos:
+    if demos is None:
         raise PomilError(f"evaluate: a {policy.env.get('id')} policy needs --demos (the demonstrations whose "
                          "expert returns normalise the scores)")
-    reference = reference_of(Demonstrations.load(args.demos).metadata, args.demos)
+    reference = reference_of(demos.metadata, args.demos)
     m = evaluate_tasks(policy, reference, args.episodes_per_code, args.seed, deterministic=not args.stochastic)
     if args.json:
         print(json.dumps(m, indent=2))
@@ -296,22 +320,28 @@ def _evaluate_tasks(policy, args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
-    from pomil.data import Demonstrations
     from pomil.eval.plots import figure1
     from pomil.eval.rollout import rollout_circles
 
     panels = []
+    policies = [(ckpt, TrainedPolicy.load(ckpt)) for ckpt in args.checkpoints]
+    for ckpt, policy in policies:
+        if policy.env.get("id") != "pomil/Circles-v0":
+            raise PomilError(f"{ckpt}: plot draws circles policies; this one was trained on {policy.env.get('id')}")
     if args.demos:
-        demos = Demonstrations.load(args.demos)
+        demos = matching_demos(args.demos, policies)
+        if demos.metadata.get("env_id") != "pomil/Circles-v0":
+            raise PomilError(f"{args.demos}: plot draws circles demonstrations; these are of {demos.metadata.get('env_id')}")
         if demos.states is None or demos.labels is None:
             raise PomilError(f"{args.demos}: field 'states'/'labels': expected both for plotting experts")
+        if len(set(demos.episode_lengths.tolist())) != 1:
+            raise PomilError(f"{args.demos}: field 'episode_bounds': expected episodes of one length for plotting experts")
         T = int(demos.episode_lengths[0])
         pos = demos.states.reshape(demos.num_episodes, T, -1)[:, :, :2]
         # states hold the position *before* each action: shift by one to show visited points
         pos = pos[:, 1:]
         panels.append(("experts", pos, demos.labels, "mode"))
-    for ckpt in args.checkpoints:
-        policy = TrainedPolicy.load(ckpt)
+    for ckpt, policy in policies:
         roll = rollout_circles(policy, args.episodes_per_code, args.seed, args.deterministic)
         panels.append((f"{policy.algo}: {Path(ckpt).parent.name or ckpt}", roll["positions"], roll["codes"], "code"))
     if not panels:
@@ -463,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except PomilError as err:
         print(f"pomil: error: {err}", file=sys.stderr)
-        return 2
+        return err.exit_status
     except KeyboardInterrupt:
         print("pomil: interrupted", file=sys.stderr)
         return 130

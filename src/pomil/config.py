@@ -1,9 +1,16 @@
 """Typed configuration: frozen dataclasses whose fields carry their own help.
 
 Every config field is declared with :func:`option`, which stores a one-line
-description in the field's metadata.  The CLI turns the fields into flags
+description in the field's metadata and, for numbers, the interval of allowed
+values (``within="(0, 1]"``).  The CLI turns the fields into flags
 (``--batch-episodes 32``) and a JSON config file may set any of them; an
 unknown key is an error that lists the valid ones.
+
+Why the intervals live on the fields: one generic check (:func:`check_fields`)
+then covers every field of every config, whether it came from a flag, a JSON
+file or Python, and ``--help`` shows the same interval the check enforces.  A
+value outside it (NaN and inf are outside every interval) is refused when the
+config is built, before anything is written.
 """
 
 from __future__ import annotations
@@ -13,22 +20,103 @@ import json
 import types
 import typing
 from pathlib import Path
-from typing import Any, Literal, TypeVar, get_args, get_origin
+import math
+import re
+from typing import Any, Literal, NamedTuple, TypeVar, get_args, get_origin
 
-from pomil.errors import PomilError
+from pomil.errors import ConfigError, PomilError
 
 T = TypeVar("T")
 
 
-def option(default: Any, help: str, **kwargs: Any) -> Any:
-    """A dataclass field with a default and its one-line description."""
+class Interval(NamedTuple):
+    """Allowed values of a numeric field, parsed from interval notation such as ``"(0, 1]"``."""
+
+    low: float
+    high: float
+    low_open: bool
+    high_open: bool
+    text: str
+
+    @classmethod
+    def parse(cls, text: str) -> "Interval":
+        m = re.fullmatch(r"\s*([\[(])\s*([^,\s]+)\s*,\s*([^\]\s)]+)\s*([\])])\s*", text)
+        if not m:
+            raise ValueError(f"interval {text!r}: expected e.g. '(0, 1]' or '[1, inf)'")
+        low, high = float(m.group(2)), float(m.group(3))
+        if math.isnan(low) or math.isnan(high) or low > high:
+            raise ValueError(f"interval {text!r}: bounds out of order")
+        return cls(low, high, m.group(1) == "(", m.group(4) == ")", f"{m.group(1)}{m.group(2)}, {m.group(3)}{m.group(4)}")
+
+    def __contains__(self, x: object) -> bool:
+        if not isinstance(x, (int, float)) or not math.isfinite(x):  # NaN and inf are in no interval
+            return False
+        above = x > self.low if self.low_open else x >= self.low
+        below = x < self.high if self.high_open else x <= self.high
+        return above and below
+
+
+def option(default: Any, help: str, within: str | None = None, **kwargs: Any) -> Any:
+    """A dataclass field with a default, its one-line description and, for a number
+    (or a tuple of numbers), the interval its values must lie in: ``within="[1, inf)"``
+    (a count), ``"(0, inf)"`` (a learning rate), ``"(0, 1]"`` (a discount),
+    ``"(-inf, inf)"`` (any finite value).  Every int and float field declares one."""
     if isinstance(default, (list, dict, set)):
         raise TypeError("use a tuple for sequence defaults")
-    return dataclasses.field(default=default, metadata={"help": help, **kwargs})
+    metadata = {"help": help, **kwargs}
+    if within is not None:
+        interval = Interval.parse(within)
+        for v in default if isinstance(default, tuple) else (default,):
+            if v not in interval:
+                raise ValueError(f"default {default!r} is not in {within}")
+        metadata["within"] = interval
+    return dataclasses.field(default=default, metadata=metadata)
 
 
 def field_help(f: dataclasses.Field) -> str:
     return str(f.metadata.get("help", ""))
+
+
+def field_interval(f: dataclasses.Field) -> Interval | None:
+    return f.metadata.get("within")
+
+
+def _type_name(tp: Any) -> str:
+    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(tp, str(tp))
+
+
+def _check_value(name: str, value: Any, tp: Any, interval: Interval | None) -> None:
+    """Raise ConfigError unless ``value`` has type ``tp`` (after coercion) and lies in ``interval``."""
+    origin = get_origin(tp)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise ConfigError(f"config key '{name}': expected one of {list(get_args(tp))}, got {value!r}")
+        return
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            raise ConfigError(f"config key '{name}': expected a list, got {value!r}")
+        for v in value:
+            _check_value(name, v, get_args(tp)[0], interval)
+        return
+    if tp in (int, float, bool, str):
+        ok = isinstance(value, tp) and not (tp is not bool and isinstance(value, bool))
+        if tp is float and isinstance(value, int) and not isinstance(value, bool):
+            ok = True
+        if not ok:
+            raise ConfigError(f"config key '{name}': expected {_type_name(tp)}, got {value!r}")
+    if tp in (int, float):
+        if interval is None:
+            raise TypeError(f"config field '{name}' declares no interval (option(..., within=...))")
+        if value not in interval:
+            what = "an integer" if tp is int else "a finite number"
+            raise ConfigError(f"config key '{name}': expected {what} in {interval.text}, got {value!r}")
+
+
+def check_fields(config: Any) -> None:
+    """Type- and range-check every field of a config dataclass (see :func:`option`)."""
+    hints = _resolved_types(type(config))
+    for f in dataclasses.fields(config):
+        _check_value(f.name, getattr(config, f.name), hints[f.name], field_interval(f))
 
 
 def _resolved_types(cls: type) -> dict[str, Any]:
@@ -64,17 +152,25 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
                 if low in ("0", "false", "no", "off"):
                     return False
                 raise ValueError(value)
-            return bool(value)
+            if isinstance(value, bool) or (isinstance(value, int) and value in (0, 1)):
+                return bool(value)
+            raise ValueError(value)
         if tp is int:
+            if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+                raise ValueError(value)
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError(value)
             return int(value)
         if tp is float:
+            if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+                raise ValueError(value)
             return float(value)
         if tp is str:
-            return str(value)
-    except (TypeError, ValueError):
-        raise PomilError(f"config key '{key}': expected {tp.__name__}, got {value!r}") from None
+            if not isinstance(value, str):
+                raise ValueError(value)
+            return value
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(f"config key '{key}': expected {tp.__name__}, got {value!r}") from None
     return value
 
 
@@ -93,14 +189,19 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
     presets: dict[str, dict[str, Any]] = getattr(cls, "PRESETS", {})
     if presets and values.get("preset") is not None:
         if values["preset"] not in presets:
-            raise PomilError(f"config key 'preset': expected one of {list(presets)}, got {values['preset']!r}")
+            raise ConfigError(f"config key 'preset': expected one of {list(presets)}, got {values['preset']!r}")
         values = {**presets[values["preset"]], **values}
     hints = _resolved_types(cls)
-    coerced = {k: _coerce(v, hints[k], k) for k, v in values.items()}
+    where = "" if source == "config" else f"{source}: "
     try:
-        return cls(**coerced)
+        coerced = {k: _coerce(v, hints[k], k) for k, v in values.items()}
+        config = cls(**coerced)
+        check_fields(config)  # also for configs without a __post_init__ that calls it
+        return config
+    except ConfigError as err:
+        raise ConfigError(f"{where}{err}") from None
     except (TypeError, ValueError) as err:
-        raise PomilError(f"{source}: {err}") from None
+        raise ConfigError(f"{source}: {err}") from None
 
 
 def load_config_file(path: str | Path) -> dict[str, Any]:
@@ -110,8 +211,12 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
         text = path.read_text()
     except OSError as err:
         raise PomilError(f"{path}: cannot read config file ({err.strerror})") from None
+    except UnicodeDecodeError:
+        raise PomilError(f"{path}: not valid JSON (not UTF-8 text)") from None
     try:
         data = json.loads(text)
+    except RecursionError:
+        raise PomilError(f"{path}: not valid JSON (nested too deeply)") from None
     except json.JSONDecodeError as err:
         raise PomilError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
     if not isinstance(data, dict):
@@ -140,11 +245,13 @@ def parse_kwargs(entries: tuple[str, ...] | list[str], name: str = "env_kwargs")
     return out
 
 
-def check_positive(config: Any, *names: str) -> None:
-    """Raise ValueError unless every named field is >= 1."""
-    for name in names:
-        if getattr(config, name) < 1:
-            raise ValueError(f"{name} must be >= 1, got {getattr(config, name)}")
+DEVICE = re.compile(r"cpu|auto|cuda(:\d+)?|mps")
+
+
+def check_device(name: str) -> None:
+    """Refuse a device name torch does not know (``tpu``) when the config is built."""
+    if not isinstance(name, str) or not DEVICE.fullmatch(name):
+        raise ConfigError(f"config key 'device': expected cpu, cuda, cuda:N, mps or auto, got {name!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,14 +267,16 @@ class RunConfig:
     observation_mask: str = option("", "re-mask the demonstrations' full observations (their states): positions-only or "
                                        "indices; '' keeps the demonstrations' own view")
     out: str = option("runs/run", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    seed: int = option(0, "random seed (same seed, same run on CPU)")
-    log_every: int = option(25, "iterations between log rows")
-    checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)")
+    seed: int = option(0, "random seed (same seed, same run on CPU)", within="[0, 4294967295]")
+    log_every: int = option(25, "iterations between log rows", within="[1, inf)")
+    checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)",
+                                   within="[1, inf)")
     device: str = option("cpu", "cpu, cuda, cuda:N or auto")
     progress: bool = option(True, "show a progress bar")
 
     def __post_init__(self) -> None:
-        check_positive(self, "log_every", "checkpoint_every")
+        check_fields(self)
+        check_device(self.device)
         from pomil.envs.wrappers import parse_mask
 
         parse_mask(self.observation_mask)  # ValueError for a malformed mask

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pomil.errors import DataError
+from pomil.errors import DataError, PomilError
 
 FORMAT_VERSION = 1
 _ARRAYS = ("observations", "actions", "episode_bounds", "labels", "states")
@@ -201,8 +201,9 @@ class Demonstrations:
                         raise DataError("metadata", "expected a JSON object", src)
         except DataError:
             raise
-        except (OSError, zipfile.BadZipFile, EOFError) as err:
-            raise DataError("(file)", f"unreadable .npz archive ({err})", src) from None
+        except Exception as err:  # a corrupted archive: zipfile, zlib and numpy raise many types
+            first = (str(err).strip().splitlines() or [""])[0][:160]
+            raise DataError("(file)", f"unreadable .npz archive ({type(err).__name__}: {first})", src) from None
         try:
             return cls(metadata=metadata, **values)
         except DataError as err:
@@ -233,24 +234,56 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+class _RecordingFile:
+    """A file object that remembers the first OSError its writes raised: writers such as
+    ``torch.save`` turn a full disk into a RuntimeError that no longer says so."""
+
+    def __init__(self, f) -> None:
+        self._f = f
+        self.error: OSError | None = None
+
+    def write(self, data) -> int:
+        try:
+            return self._f.write(data)
+        except OSError as err:
+            self.error = self.error or err
+            raise
+
+    def __getattr__(self, name: str):
+        return getattr(self._f, name)
+
+
 def atomic_write(path: Path, write) -> None:
-    """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename over it."""
+    """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename over it.
+
+    Either the whole new file is at ``path`` or the previous one is untouched: a
+    failed write (no space, read-only folder) removes the temporary file and
+    ends in a one-line PomilError that says so.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = None
+    rec = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
         with os.fdopen(fd, "wb") as f:
-            write(f)
+            rec = _RecordingFile(f)
+            write(rec)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    except BaseException as err:
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+        cause = err if isinstance(err, OSError) else (rec.error if rec is not None else None)
+        if cause is None:
+            raise
+        left = f"the previous {path.name} is unchanged" if path.exists() else "nothing was written"
+        raise PomilError(f"{path}: cannot write ({cause.strerror or cause}); {left}") from None
 
 
 def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, Any]]:
@@ -280,6 +313,13 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
         except ValueError as err:
             raise DataError("metadata.observation_mask", str(err), source) from None
     demos.check_compatible(obs_dim, act_dim, source)
+    if demos.states is not None:
+        from pomil.envs import state_dim
+
+        want = state_dim(env_id, kwargs)
+        if demos.states.shape[1] != want:
+            raise DataError("states", f"expected {want} columns (the full state of {env_id}), got {demos.states.shape[1]}",
+                            source)
     return env_id, kwargs
 
 

@@ -30,7 +30,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from pomil.api import TrainedPolicy
-from pomil.config import option, to_dict
+from pomil.config import check_fields, option, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
 from pomil.errors import PomilError
@@ -54,13 +54,14 @@ class CirclesReproConfig(RayOptions):
                                               "results are results/circles (pass --out results/circles to update them)")
     runs: str = option("runs/circles", "where each run's checkpoint and logs go")
     demos: str = option("data/circles.npz", "demonstrations; recorded (400 episodes, seed 0) if missing")
-    seeds: int = option(10, "training seeds per learner (0 .. seeds-1)")
+    seeds: int = option(10, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
                                        "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
-    bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)")
-    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)")
+    bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)", within="[0, inf)")
+    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)",
+                                         within="[0, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
-    episodes_per_code: int = option(100, "evaluation rollouts per latent code")
+    episodes_per_code: int = option(100, "evaluation rollouts per latent code", within="[1, inf)")
     progress: bool = option(True, "show progress bars")
 
     def __post_init__(self) -> None:
@@ -73,10 +74,7 @@ class CirclesReproConfig(RayOptions):
 
 def check_runs(cfg: Any) -> None:
     """Seeds, iterations and learner names of a reproduction config."""
-    if cfg.seeds < 1:
-        raise ValueError(f"seeds must be >= 1, got {cfg.seeds}")
-    if cfg.bc_iterations < 0 or cfg.adversarial_iterations < 0:
-        raise ValueError("bc_iterations and adversarial_iterations must be >= 0 (0: the learner's default)")
+    check_fields(cfg)
     unknown = sorted(set(cfg.learners) - set(LEARNERS))
     if unknown or not cfg.learners:
         raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
@@ -258,16 +256,15 @@ class CirclesModesConfig(RayOptions):
                                                     "the committed results are results/circles-modes")
     runs: str = option("runs/circles-modes", "where each case's demonstrations and each run's checkpoint and logs go")
     cases: tuple[str, ...] = option(tuple(MODES_CASES), f"comma-separated cases: {', '.join(MODES_CASES)}")
-    seeds: int = option(10, "training seeds per case (0 .. seeds-1)")
+    seeds: int = option(10, "training seeds per case (0 .. seeds-1)", within="[1, inf)")
     learner: Literal["infogail", "infogail-pomdp"] = option("infogail-pomdp", "the learner, with its default settings")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
-    episodes_per_mode: int = option(100, "demonstration episodes per mode (recorded with seed 0)")
-    episodes_per_code: int = option(100, "evaluation rollouts per latent code")
+    episodes_per_mode: int = option(100, "demonstration episodes per mode (recorded with seed 0)", within="[1, inf)")
+    episodes_per_code: int = option(100, "evaluation rollouts per latent code", within="[1, inf)")
     progress: bool = option(True, "show progress bars")
 
     def __post_init__(self) -> None:
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
+        check_fields(self)
         unknown = sorted(set(self.cases) - set(MODES_CASES))
         if unknown or not self.cases:
             raise ValueError(f"unknown cases {unknown}; choose from {list(MODES_CASES)}")
@@ -371,14 +368,16 @@ class HopperReproConfig(RayOptions):
                           "results/hopper[-standard])")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
     demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
-    demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded")
-    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)")
+    demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded", within="[1, inf)")
+    seeds: int = option(3, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
                                        "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
-    bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)")
-    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)")
+    bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)", within="[0, inf)")
+    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)",
+                                         within="[0, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
-    episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)")
+    episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)",
+                                    within="[1, inf)")
     progress: bool = option(True, "show progress bars")
 
     def __post_init__(self) -> None:

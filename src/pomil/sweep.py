@@ -6,7 +6,9 @@ grid point is a *setting*; each (setting, seed) a run in
 ``OUT/<setting>/seed<k>/`` with its checkpoint, logs and ``result.json``
 (the final evaluation: mode metrics on circles, per-task figures on
 multi-task demonstrations).  A run whose ``result.json`` exists is finished
-and is not run again.  The sweep writes ``OUT/sweep.json`` (every run, failed
+and is not run again; one with a checkpoint but no ``result.json`` (its
+worker died, and Ray retries it, or the sweep was stopped) resumes from
+its checkpoint.  The sweep writes ``OUT/sweep.json`` (every run, failed
 ones with their error), ``OUT/table.md`` (mean +- std over seeds per setting)
 and ``OUT/figure.png`` (the matching reproduction's figure: trajectories
 coloured by code on circles, normalised-return curves on tasks).
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from pomil.config import load_config_file, option, parse_kwargs
+from pomil.config import check_fields, load_config_file, option, parse_kwargs
 from pomil.data import atomic_write
 from pomil.errors import PomilError
 from pomil.training import write_json
@@ -32,17 +35,15 @@ from pomil.training import write_json
 @dataclass(frozen=True)
 class SweepConfig:
     out: str = option("runs/sweep", "sweep directory: one folder per setting and seed, sweep.json, table.md, figure.png")
-    seeds: int = option(3, "training seeds per setting (0 .. seeds-1)")
+    seeds: int = option(3, "training seeds per setting (0 .. seeds-1)", within="[1, inf)")
     ray: bool = option(True, "run on Ray (a local Ray started in-process unless --address); --no-ray: one after another")
     address: str = option("", "address of an existing Ray cluster (paths must be on storage every node sees)")
-    cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)")
-    episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run")
+    cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)", within="(0, inf)")
+    episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run",
+                                    within="[1, inf)")
 
     def __post_init__(self) -> None:
-        if self.seeds < 1:
-            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
-        if self.cpus_per_run <= 0:
-            raise ValueError(f"cpus_per_run must be > 0, got {self.cpus_per_run}")
+        check_fields(self)
 
 
 def parse_grid(entries: list[str]) -> dict[str, list[Any]]:
@@ -82,7 +83,12 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
         fixed["learner"] = learner
     cfg = from_dict(cls, {**values, **fixed}, source=f"sweep run {run_dir}")
     t0 = time.perf_counter()
-    ckpt = train(cfg)
+    # A checkpoint without result.json is a run whose worker died (Ray retries it) or that
+    # was interrupted: continue it from its last checkpoint instead of starting over.
+    resume = (Path(run_dir) / "checkpoint.pt").exists()
+    if resume:
+        print(f"{run_dir}: resuming from its checkpoint", file=sys.stderr, flush=True)
+    ckpt = train(cfg, resume=resume)
     wall = time.perf_counter() - t0
     policy = TrainedPolicy.load(ckpt)
     result: dict[str, Any] = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "checkpoint": str(ckpt)}

@@ -1,30 +1,36 @@
-"""What every learner shares: seeding, logging, progress, checkpoints, resume.
+"""What every learner shares: seeding, logging, progress, checkpoints, resume,
+the divergence guard and the run directory's lock.
 
 A run directory holds::
 
-    checkpoint.pt   latest checkpoint (written atomically; loads weights_only)
+    checkpoint.pt   latest checkpoint (written atomically; loads weights_only; never NaN/inf)
     config.json     the run's configuration
     metrics.csv     one row per logged iteration
     tb/             TensorBoard event files
+    run.lock        while a run writes: its pid, host and start time (one writer at a time)
 """
 
 from __future__ import annotations
 
 import csv
+import fcntl
 import io
 import json
 import math
+import os
 import random
+import socket
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
 
 from pomil.data import atomic_write
-from pomil.errors import PomilError
+from pomil.errors import DivergenceError, PomilError, RunBusyError
 
 CHECKPOINT_FORMAT = "pomil-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -39,20 +45,51 @@ def seed_everything(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
-def resolve_device(name: str) -> torch.device:
+def resolve_device(name: str | torch.device) -> torch.device:
+    name = str(name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise PomilError(f"device '{name}' requested but CUDA is not available; use --device cpu")
-    device = torch.device(name)
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise PomilError(f"device {name!r}: expected cpu, cuda, cuda:N, mps or auto") from None
     if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
         raise PomilError(f"device '{name}' requested but this machine has {torch.cuda.device_count()} CUDA device(s)")
     return device
 
 
 # ----------------------------------------------------------------- checkpoints
+def first_nonfinite(obj: Any, where: str = "") -> str | None:
+    """Key path (``nets.value.mlp.0.weight``) of the first floating tensor or float in a
+    nested dict / list that holds NaN or inf; None when every one is finite."""
+    if isinstance(obj, torch.Tensor):
+        return where if obj.is_floating_point() and not bool(torch.isfinite(obj).all()) else None
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) else where
+    if isinstance(obj, dict):
+        items: Iterable = obj.items()
+    elif isinstance(obj, (list, tuple)):
+        items = enumerate(obj)
+    else:
+        return None
+    for k, v in items:
+        bad = first_nonfinite(v, f"{where}.{k}" if where else str(k))
+        if bad is not None:
+            return bad
+    return None
+
+
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
-    """Atomically write a checkpoint dict (tensors, numbers, strings, lists, dicts)."""
+    """Atomically write a checkpoint dict (tensors, numbers, strings, lists, dicts).
+
+    A payload holding NaN or inf is never written (the divergence guard stops a
+    run before this; this is the last line): the previous checkpoint stays."""
+    bad = first_nonfinite({k: v for k, v in payload.items() if k != "config"})
+    if bad is not None:
+        raise DivergenceError(f"{path}: not writing a checkpoint whose '{bad}' holds NaN/inf "
+                              f"(iteration {payload.get('iteration', '?')}); the previous checkpoint is unchanged")
     payload = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **payload}
     atomic_write(Path(path), lambda f: torch.save(payload, f))
 
@@ -73,42 +110,97 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise PomilError(f"{path}: not a pomil checkpoint (missing 'format: {CHECKPOINT_FORMAT}')")
     if payload.get("version") != CHECKPOINT_VERSION:
         raise PomilError(f"{path}: checkpoint version {payload.get('version')} is not supported (expected {CHECKPOINT_VERSION})")
+    bad = first_nonfinite({k: v for k, v in payload.items() if k != "config"})
+    if bad is not None:
+        raise PomilError(f"{path}: '{bad}' holds NaN/inf (the run that wrote it diverged); "
+                         "use an earlier checkpoint or train again with a lower learning rate")
     return payload
 
 
-# Settings a resumed run may change: they do not alter what is computed.
-RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device"})
+# Settings a resumed run may change: they do not alter what is computed (``out``: a run
+# directory may be moved), except the learning rates, which may be lowered to continue
+# a run that diverged.
+RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device", "out",
+                               "lr", "lr_value", "lr_critic", "lr_posterior", "bc_init_lr"})
 
 
 def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str | Path) -> None:
     """Refuse to resume a run under a config that would change its results."""
     saved = ckpt.get("config", {})
+    if not isinstance(saved, dict):
+        raise TypeError("config")
     changed = sorted(k for k in set(config) | set(saved) if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
     if changed:
         raise PomilError(f"{path}: cannot resume with a different config (changed: {', '.join(changed)})")
 
 
+@dataclass(frozen=True)
+class RunStart:
+    """Where a run starts: iteration 0 and no environment steps, or a checkpoint's."""
+
+    iteration: int = 0
+    env_steps: int = 0
+
+
 def resume_run(
     ckpt_path: Path, config: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, Any],
     generator: torch.Generator, device: torch.device | str = "cpu",
-) -> int:
-    """Restore networks, optimisers and RNGs from a run's checkpoint; returns its iteration.
+) -> RunStart:
+    """Restore networks, optimisers and RNGs from a run's checkpoint; returns its iteration
+    and environment-step count.
 
     ``nets`` maps a key of the checkpoint's ``nets`` (or ``policy``) to a module;
-    None entries are skipped.
+    None entries are skipped.  The optimisers keep the learning rates they were built
+    with (the run's config), so that a resumed run may lower them.  A config whose
+    ``iterations`` is below the checkpoint's iteration is refused.
     """
     if not ckpt_path.exists():
         raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {ckpt_path.parent})")
     ckpt = load_checkpoint(ckpt_path, device)
-    check_resume_config(ckpt, config, ckpt_path)
-    saved_nets = ckpt.get("nets", {"policy": ckpt.get("policy")})
-    for k, net in nets.items():
-        if net is not None:
-            net.load_state_dict(saved_nets[k])
-    for k, opt in optimizers.items():
-        opt.load_state_dict(ckpt["optimizers"][k])
-    restore_rng(ckpt["rng"], generator)
-    return int(ckpt["iteration"])
+    try:
+        check_resume_config(ckpt, config, ckpt_path)
+    except (TypeError, ValueError, RuntimeError, AttributeError):
+        raise PomilError(f"{ckpt_path}: cannot resume from this checkpoint (its 'config' is damaged)") from None
+    done = ckpt.get("iteration")
+    if not isinstance(done, int) or isinstance(done, bool) or done < 0:
+        raise PomilError(f"{ckpt_path}: checkpoint has no usable 'iteration' (got {done!r})")
+    if config.get("iterations", done) < done:
+        raise PomilError(f"{ckpt_path}: the checkpoint is at iteration {done}, past --iterations {config['iterations']}; "
+                         f"nothing to resume (pass --iterations above {done} to continue; the checkpoint is unchanged)")
+    try:
+        saved_nets = ckpt.get("nets", {"policy": ckpt.get("policy")})
+        for k, net in nets.items():
+            if net is not None:
+                net.load_state_dict(saved_nets[k])
+        for k, opt in optimizers.items():
+            lrs = [g["lr"] for g in opt.param_groups]
+            opt.load_state_dict(ckpt["optimizers"][k])
+            check_optimizer_state(opt)
+            for g, lr in zip(opt.param_groups, lrs):
+                g["lr"] = lr
+        restore_rng(ckpt["rng"], generator)
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
+        raise PomilError(f"{ckpt_path}: cannot resume from this checkpoint ({type(err).__name__}: {first})") from None
+    steps = ckpt.get("env_steps", 0)
+    return RunStart(done, int(steps) if isinstance(steps, (int, float)) and math.isfinite(steps) else 0)
+
+
+def check_optimizer_state(opt: torch.optim.Optimizer) -> None:
+    """ValueError unless every parameter's state has the same keys, each a tensor of the
+    parameter's shape, and ``step`` is one number: load_state_dict takes a damaged state,
+    and the next step would fail."""
+    states = [(p, opt.state[p]) for group in opt.param_groups for p in group["params"] if p in opt.state]
+    keys = set().union(*(s.keys() for _, s in states)) if states else set()
+    for p, state in states:
+        if set(state) != keys:
+            raise ValueError(f"optimizer state keys {sorted(state)}, expected {sorted(keys)}")
+        for key, v in state.items():
+            if key == "step":
+                if not (isinstance(v, (int, float)) or (isinstance(v, torch.Tensor) and v.numel() == 1)):
+                    raise ValueError(f"optimizer 'step' is {v!r:.60}")
+            elif not isinstance(v, torch.Tensor) or v.shape != p.shape:
+                raise ValueError(f"optimizer state '{key}' is not a tensor of its parameter's shape {tuple(p.shape)}")
 
 
 def rng_state(generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -118,6 +210,155 @@ def rng_state(generator: torch.Generator) -> dict[str, torch.Tensor]:
 def restore_rng(state: dict[str, torch.Tensor], generator: torch.Generator) -> None:
     torch.set_rng_state(state["torch"])
     generator.set_state(state["generator"])
+
+
+# ------------------------------------------------------------ divergence guard
+class DivergenceGuard:
+    """Stops a run at the first NaN or inf in a loss, gradient, parameter or reward.
+
+    Every learner's loop calls the same checks, in the iteration where the value
+    appears and before any checkpoint of that iteration, so a diverged run never
+    writes a non-finite checkpoint and its last good one stays for ``--resume``.
+    The checks only read values: a run that does not diverge computes exactly
+    what it computed without them.
+
+    ``hints`` maps a quantity's first word (``critic``, ``policy``, ``reward``,
+    ...) to the option that most likely made it diverge, e.g.
+    ``{"critic": "--lr-critic (now 10000.0)"}``; ``on_stop`` (flushing the
+    metrics, say) runs before the error is raised.
+    """
+
+    def __init__(self, ckpt_path: Path, hints: dict[str, str], saved_iteration: int = 0,
+                 on_stop: Callable[[], None] | None = None) -> None:
+        self.ckpt_path = Path(ckpt_path)
+        self.hints = hints
+        self.saved_iteration = saved_iteration  # the last checkpoint's iteration (0: none yet)
+        self.on_stop = on_stop
+
+    def saved(self, iteration: int) -> None:
+        """Record that a checkpoint of ``iteration`` was written."""
+        self.saved_iteration = iteration
+
+    def value(self, step: int | str, quantity: str, x: float | torch.Tensor) -> None:
+        """A scalar or tensor (loss, reward, gradient norm) must be finite everywhere."""
+        if isinstance(x, torch.Tensor):
+            if not bool(torch.isfinite(x).all()):
+                bad = x.detach()[~torch.isfinite(x.detach())].flatten()[0].item()
+                self.stop(step, quantity, bad)
+        elif not math.isfinite(x):
+            self.stop(step, quantity, x)
+
+    def grads(self, step: int | str, name: str, params: Iterable[torch.nn.Parameter]) -> None:
+        """Every gradient of ``params`` (after backward, before the optimiser step) must be finite."""
+        for p in params:
+            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                self.stop(step, f"{name} gradient", p.grad[~torch.isfinite(p.grad)].flatten()[0].item())
+
+    def params(self, step: int | str, nets: dict[str, torch.nn.Module | None]) -> None:
+        """Every parameter and buffer of every net must be finite."""
+        for name, net in nets.items():
+            if net is None:
+                continue
+            for key, t in net.state_dict().items():
+                if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                    self.stop(step, f"{name} parameter '{key}'", t[~torch.isfinite(t)].flatten()[0].item())
+
+    def stop(self, step: int | str, quantity: str, bad: float) -> None:
+        if self.on_stop is not None:
+            self.on_stop()
+        where = f"iteration {step}" if isinstance(step, int) else step
+        hint = self.hints.get(quantity.split()[0], "")
+        lower = ("a lower " + hint.split(" (")[0]) if hint.count("(now") == 1 else "lower learning rates"
+        if self.saved_iteration > 0 and self.ckpt_path.exists():
+            after = f"{self.ckpt_path} (iteration {self.saved_iteration}) is unchanged: continue it with --resume and {lower}"
+        else:
+            after = f"no checkpoint of this run was written: start it again with {lower}"
+        raise DivergenceError(f"{where}: {quantity} is {bad} (the run diverged); "
+                              f"{'try a lower ' + hint + '; ' if hint else ''}{after}")
+
+
+def lr_hint(config: Any, *fields: str) -> str:
+    """``--lr-value (now 0.0005) or --lr-critic (now 1e+04)``: the flags of config fields and their values."""
+    flags = [f"--{f.replace('_', '-')} (now {getattr(config, f):g})" for f in fields]
+    return " or ".join([", ".join(flags[:-1]), flags[-1]] if len(flags) > 1 else flags)
+
+
+# ------------------------------------------------------------------------ lock
+class RunLock:
+    """One writer per run directory: ``run.lock``, locked (flock) while a run writes.
+
+    A second run into the same directory is refused with the holder's pid, host
+    and start time.  The kernel drops the lock when its process ends, however
+    it ends, so a lock file left by a killed run (its process gone) is stale:
+    the next run into the directory takes it over.  That run may be a
+    ``--resume`` (which continues from the killed run's last checkpoint) or a
+    fresh run (which starts over, as it would in a finished run's directory);
+    either way a note says so.  Used as ``with RunLock(dir) as lock: ...
+    lock.acquire(resume)``: acquired when the run is about to write, released
+    (and the file removed) when the block ends.
+    """
+
+    def __init__(self, run_dir: str | Path) -> None:
+        self.path = Path(run_dir) / "run.lock"
+        self._fd: int | None = None
+
+    def __enter__(self) -> "RunLock":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+    def acquire(self, resume: bool = False) -> None:
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            while True:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    holder = self._read(fd)
+                    os.close(fd)
+                    raise RunBusyError(
+                        f"{self.path.parent}: in use by another run (pid {holder.get('pid', '?')} on "
+                        f"{holder.get('host', '?')}, since {holder.get('since', '?')}; lock {self.path}): "
+                        "wait for it to end, or choose another --out") from None
+                try:  # the previous holder may have removed the file between our open and flock
+                    same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+                except FileNotFoundError:
+                    same = False
+                if same:
+                    break
+                os.close(fd)
+            previous = self._read(fd)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                      "since": time.strftime("%Y-%m-%d %H:%M:%S")}).encode(), 0)
+        except OSError as err:
+            raise PomilError(f"{self.path.parent}: cannot write to the run directory ({err.strerror or err})") from None
+        self._fd = fd
+        if previous:
+            what = ("continuing from its last checkpoint" if resume else
+                    "starting over (--resume would continue from its last checkpoint)")
+            print(f"pomil: note: {self.path} was left by pid {previous.get('pid', '?')} on {previous.get('host', '?')}, "
+                  f"which is no longer running; taking it over and {what}", file=sys.stderr)
+
+    @staticmethod
+    def _read(fd: int) -> dict[str, Any]:
+        try:
+            data = json.loads(os.pread(fd, 4096, 0) or b"{}")
+        except (ValueError, OSError):
+            return {"pid": "?"}
+        return data if isinstance(data, dict) else {"pid": "?"}
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+        os.close(self._fd)  # closing drops the flock
+        self._fd = None
 
 
 # --------------------------------------------------------------------- logging

@@ -63,8 +63,8 @@ def test_resume_refuses_a_changed_config(demos_path, tmp_path):
     from pomil.errors import PomilError
 
     train_bc(_cfg(demos_path, tmp_path / "r", iterations=5, hidden_size=32))
-    with pytest.raises(PomilError, match="changed: lr"):
-        train_bc(_cfg(demos_path, tmp_path / "r", iterations=10, hidden_size=32, lr=0.5), resume=True)
+    with pytest.raises(PomilError, match="changed: batch_episodes"):
+        train_bc(_cfg(demos_path, tmp_path / "r", iterations=10, hidden_size=32, batch_episodes=8), resume=True)
     with pytest.raises(PomilError, match="nothing to resume"):
         train_bc(_cfg(demos_path, tmp_path / "empty", iterations=5), resume=True)
 

@@ -32,6 +32,7 @@ value, critic and posterior; codes; Wasserstein).
 from __future__ import annotations
 
 import copy
+import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -42,11 +43,11 @@ import torch.nn.functional as F
 
 from pomil.algos.bc import bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
 from pomil.api import TrainedPolicy
-from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
-from pomil.errors import PomilError
+from pomil.errors import ConfigError, PomilError
 from pomil.nn import heads
 from pomil.nn.heads import BeliefHead
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
@@ -55,7 +56,7 @@ from pomil.rl.collect import collect
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import (
-    RunLogger, resolve_device, resume_run, rng_state,
+    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
     save_checkpoint, seed_everything, write_json,
 )
 
@@ -90,55 +91,62 @@ class AdversarialConfig(RunConfig):
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     preset: Literal["default", "paper-text"] = option("default", "named settings under the config file and flags: default "
                                                       "(pomil's measured recipe) or paper-text (the paper's text, see PRESETS)")
-    iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO)")
-    num_envs: int = option(256, "episodes collected per iteration")
+    iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO)", within="[1, inf)")
+    num_envs: int = option(256, "episodes collected per iteration", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
-                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on")
-    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)")
-    hidden_size: int = option(128, "dense width and GRU cells of every network")
-    lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)")
-    lr_value: float = option(5e-4, "value-function learning rate (Adam)")
-    shared_value_encoder: bool = option(False, "value head on the policy's encoder instead of its own (measured: see README)")
-    lr_critic: float = option(5e-4, "critic learning rate")
-    lr_posterior: float = option(2e-4, "posterior learning rate (Adam)")
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on",
+                                     within="[0, inf)")
+    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)",
+                            within="[-1, inf)")
+    hidden_size: int = option(128, "dense width and GRU cells of every network", within="[1, inf)")
+    lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
+    lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
+    shared_value_encoder: bool = option(False, "value head on the policy's encoder instead of its own (measured: see docs/method.md)")
+    lr_critic: float = option(5e-4, "critic learning rate", within="(0, inf)")
+    lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("adam", "adam (the paper's code) or rmsprop (its text)")
-    critic_steps: int = option(3, "critic updates per iteration")
-    critic_batch: int = option(64, "expert and policy episodes per critic update")
+    critic_steps: int = option(3, "critic updates per iteration", within="[1, inf)")
+    critic_batch: int = option(64, "expert and policy episodes per critic update", within="[1, inf)")
     expert_action_noise: bool = option(False, "add the policy's current action noise to the demonstrations' actions the critic "
                                        "sees, so that it cannot tell deterministic experts from the policy by action jitter")
     weight_clip: float = option(0.0, "clip Wasserstein critic weights to +-this after each update (0: off; the paper's text: "
-                                     "0.01; never for GAIL's GAN critic)")
-    gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam")
-    posterior_steps: int = option(1, "posterior updates per iteration")
-    mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)")
-    ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss")
+                                     "0.01; never for GAIL's GAN critic)", within="[0, inf)")
+    gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam", within="[0, inf)")
+    posterior_steps: int = option(1, "posterior updates per iteration", within="[1, inf)")
+    mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)",
+                              within="[0, inf)")
+    ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
-    gamma: float = option(0.99, "discount")
-    gae_lambda: float = option(0.95, "GAE lambda")
-    clip: float = option(0.2, "PPO ratio clip")
-    value_clip: float = option(0.0, "PPO value clip (0: off)")
-    ppo_epochs: int = option(2, "PPO epochs per iteration")
-    minibatches: int = option(4, "PPO minibatches per epoch")
+    gamma: float = option(0.99, "discount", within="(0, 1]")
+    gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
+    clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
+    value_clip: float = option(0.0, "PPO value clip (0: off)", within="[0, inf)")
+    ppo_epochs: int = option(2, "PPO epochs per iteration", within="[1, inf)")
+    minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
     update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
-    window_length: int = option(8, "steps per window in window mode")
+    window_length: int = option(8, "steps per window in window mode", within="[1, inf)")
     bc_init_iterations: int = option(3000, "behaviour-cloning steps on the demonstrations before adversarial training "
-                                           "(the warm start; 0: off)")
-    bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start")
-    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step")
+                                           "(the warm start; 0: off)", within="[0, inf)")
+    bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start", within="(0, inf)")
+    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
     bc_init_codes: Literal["random", "mixture"] = option("mixture", "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes (mixture likelihood)")
     posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
-                                                 "each episode labelled with its most likely code")
-    log_std_init: float = option(-1.0, "initial log std of the policy")
+                                                 "each episode labelled with its most likely code", within="[0, inf)")
+    log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
     bc_weight: float = option(10.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
-                                    "policy's PPO loss (keeps the policy near the demonstrations; 0: off)")
+                                    "policy's PPO loss (keeps the policy near the demonstrations; 0: off)",
+                                    within="[0, inf)")
     policy_warmup_iterations: int = option(5, "first iterations in which only the critic, posterior and value learn "
-                                              "(the warm-started policy waits for a trained value and critic)")
-    eval_every: int = option(5, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)")
-    eval_episodes: int = option(10, "evaluation rollouts per code")
-    log_every: int = option(5, "iterations between log rows")
-    checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)")
+                                              "(the warm-started policy waits for a trained value and critic)",
+                                              within="[0, inf)")
+    eval_every: int = option(5, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)",
+                             within="[0, inf)")
+    eval_episodes: int = option(10, "evaluation rollouts per code", within="[1, inf)")
+    log_every: int = option(5, "iterations between log rows", within="[1, inf)")
+    checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)",
+                                   within="[1, inf)")
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
@@ -153,15 +161,12 @@ class AdversarialConfig(RunConfig):
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        check_positive(self, "iterations", "num_envs", "hidden_size", "critic_steps", "critic_batch", "ppo_epochs", "bc_init_batch",
-                       "minibatches", "window_length", "eval_episodes")
-        if min(self.bc_init_iterations, self.posterior_init_iterations, self.policy_warmup_iterations, self.rollout_threads) < 0:
-            raise ValueError("bc_init_iterations, posterior_init_iterations, policy_warmup_iterations and rollout_threads must be >= 0")
-        if self.gradient_penalty < 0 or self.weight_clip < 0 or self.bc_weight < 0:
-            raise ValueError("gradient_penalty, weight_clip and bc_weight must be >= 0")
-        if self.num_codes in (0, 1) or self.num_codes < -1:
-            raise ValueError(f"num_codes must be -1 (from the demonstrations) or >= 2, got {self.num_codes}")
+        super().__post_init__()  # every field in its interval (see the option declarations)
+        if self.num_codes in (0, 1):
+            raise ConfigError(f"config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got {self.num_codes}")
+        if self.update_mode == "sequence" and self.minibatches > self.num_envs:
+            raise ConfigError(f"config key 'minibatches': expected at most num_envs ({self.num_envs}) whole episodes "
+                              f"per epoch in sequence mode, got {self.minibatches}")
 
 
 @dataclass
@@ -327,6 +332,20 @@ def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
 
 
 def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
+    """Train (or continue) an adversarial run; returns the checkpoint path."""
+    with RunLock(cfg.out) as lock:
+        return _train_adversarial(cfg, resume, lock)
+
+
+def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
+    """The option to lower when a quantity (named by its first word) turns NaN or inf."""
+    rewards = ("lr_critic", "lr_posterior") if LEARNER_KINDS[cfg.learner]["codes"] else ("lr_critic",)
+    return {"policy": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr_value", *rewards),  # value targets are rewards
+            "critic": lr_hint(cfg, "lr_critic"), "posterior": lr_hint(cfg, "lr_posterior"),
+            "reward": lr_hint(cfg, *rewards), "warm-start": lr_hint(cfg, "bc_init_lr")}
+
+
+def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> Path:
     if not cfg.demos:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
     run_dir = Path(cfg.out)
@@ -353,15 +372,23 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     if m.posterior is not None:
         opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
     nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
-    start = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else 0
+    lock.acquire(resume)
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else RunStart()
+    start = resumed.iteration
+    if start == cfg.iterations:
+        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
+        return ckpt_path
     write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
+    guard = DivergenceGuard(ckpt_path, divergence_hints(cfg), start)
     expert = demos.padded(device)
     expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
     expert_prev = shift_actions(expert.actions)
     mixture = cfg.bc_init_codes == "mixture" and num_codes > 0  # the warm start's and the BC term's likelihood
-    init_stats = bc_warm_start(m, expert, expert_prev, num_codes, mixture, cfg, gen) if start == 0 and cfg.bc_init_iterations > 0 else {}
+    init_stats = (bc_warm_start(m, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
+                  if start == 0 and cfg.bc_init_iterations > 0 else {})
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
                        key_stats=("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein"))
+    guard.on_stop = logger.close
 
     def checkpoint(iteration: int) -> None:
         logger.flush()
@@ -370,7 +397,9 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             "env": env_info, "policy_arch": arch.to_dict(), "policy": m.policy.state_dict(),
             "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
             "optimizers": {k: o.state_dict() for k, o in opt.items()}, "rng": rng_state(gen),
+            "env_steps": steps_done,
         })
+        guard.saved(iteration)
 
     if start == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
         if evaluate is not None:
@@ -378,7 +407,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         if init_stats:
             logger.log(0, init_stats)
     timers = {"rollout": 0.0, "critic": 0.0, "posterior": 0.0, "ppo": 0.0}
-    steps_done = 0
+    steps_done = resumed.env_steps  # eval/env_steps counts the whole run, across resumes
     t_start = time.perf_counter()
     for it in range(start + 1, cfg.iterations + 1):
         stats: dict[str, float] = {}
@@ -386,6 +415,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         t0 = time.perf_counter()
         roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device, cfg.rollout_threads)
         stats["env/true_return"] = env_rewards.sum(0).mean().item()
+        guard.value(it, "environment reward", stats["env/true_return"])
         steps_done += roll.num_steps * roll.num_envs
         t1 = time.perf_counter()
         # 2. critic
@@ -394,8 +424,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                              else (expert.actions, expert_prev))
             loss, s = critic_loss(m.critic, _expert_batch(expert, e_act, e_prev, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
                                   objective, cfg.gradient_penalty)
+            guard.value(it, "critic loss", s["critic/loss"])
             opt["critic"].zero_grad(set_to_none=True)
             loss.backward()
+            guard.grads(it, "critic", m.critic.parameters())
             opt["critic"].step()
             if cfg.weight_clip > 0 and objective == "wasserstein":
                 with torch.no_grad():
@@ -409,13 +441,16 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             for _ in range(cfg.posterior_steps):
                 for batch_idx, batch in _posterior_batches(roll, code_steps, cfg, gen):
                     loss, s = posterior_loss(m.posterior, batch, batch_idx)
+                    guard.value(it, "posterior loss", s["posterior/loss"])
                     opt["posterior"].zero_grad(set_to_none=True)
                     loss.backward()
+                    guard.grads(it, "posterior", m.posterior.parameters())
                     opt["posterior"].step()
             stats.update(s)
         t3 = time.perf_counter()
         # 4. rewards and advantages
         r, s = rewards(m, roll, code_idx, cfg, objective)
+        guard.value(it, "reward", r)
         stats.update(s)
         adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
         roll = roll.with_(rewards=r, advantages=adv, returns=ret)
@@ -445,15 +480,19 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                     bc, bc_stats = demo_nll(m.policy, demo_feats, demo, gen, num_codes, mixture)
                     loss = loss + cfg.bc_weight * bc
                     s["ppo/bc_nll"] = bc_stats["bc/nll"]
+                guard.value(it, "policy loss (PPO)", s["ppo/policy_loss"])
+                guard.value(it, "value loss", s["ppo/value_loss"])
                 opt["policy"].zero_grad(set_to_none=True)
                 opt["value"].zero_grad(set_to_none=True)
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5)
-                torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5)  # without a shared encoder
+                guard.value(it, "policy gradient norm", torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5))
+                guard.value(it, "value gradient norm",  # without a shared encoder
+                            torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5))
                 if it > cfg.policy_warmup_iterations:
                     opt["policy"].step()
                 opt["value"].step()
         stats.update(s)
+        guard.params(it, nets)  # after weight clipping: what a checkpoint of this iteration would hold
         t4 = time.perf_counter()
         for k, dt in zip(timers, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             timers[k] += dt
@@ -495,7 +534,7 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
 
 
 def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
-                  cfg: AdversarialConfig, gen: torch.Generator) -> dict[str, float]:
+                  cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
 
     Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
@@ -507,8 +546,13 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
     opt = torch.optim.Adam(m.policy.parameters(), lr=cfg.bc_init_lr)
     stats: dict[str, float] = {}
-    for _ in range(cfg.bc_init_iterations):
+    for step in range(1, cfg.bc_init_iterations + 1):
         stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture)
+        if guard is not None:
+            where = f"warm-start step {step}"
+            guard.value(where, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
+            guard.grads(where, "warm-start policy", m.policy.parameters())
+            guard.params(where, {"warm-start policy": m.policy})
     if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = most_likely_codes(m.policy, expert, expert_prev)
         stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
@@ -518,6 +562,8 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
             idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
             loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
                                           starts[:, idx], expert.mask[:, idx], codes[idx].expand(expert.mask.shape[0], -1))
+            if guard is not None:
+                guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
             post_opt.zero_grad(set_to_none=True)
             loss.backward()
             post_opt.step()

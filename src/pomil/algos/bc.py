@@ -10,6 +10,7 @@ run.
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,15 +19,15 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.data import PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import (
-    RunLogger, resolve_device, resume_run, rng_state, save_checkpoint,
-    seed_everything, write_json,
+    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
+    save_checkpoint, seed_everything, write_json,
 )
 
 
@@ -34,17 +35,14 @@ from pomil.training import (
 class BCConfig(RunConfig):
     out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     policy: Literal["mlp", "gru"] = option("gru", "mlp: current observation only; gru: belief over the history")
-    hidden_size: int = option(128, "width of the dense layers and GRU cells")
-    iterations: int = option(500, "gradient steps")
-    batch_episodes: int = option(64, "whole episodes per minibatch")
-    lr: float = option(1e-3, "Adam learning rate")
-    log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy")
+    hidden_size: int = option(128, "width of the dense layers and GRU cells", within="[1, inf)")
+    iterations: int = option(500, "gradient steps", within="[1, inf)")
+    batch_episodes: int = option(64, "whole episodes per minibatch", within="[1, inf)")
+    lr: float = option(1e-3, "Adam learning rate", within="(0, inf)")
+    log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy", within="(-inf, inf)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, "iterations", "batch_episodes", "hidden_size")
-        if self.lr <= 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
 
 
 def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor,
@@ -158,6 +156,11 @@ def most_likely_codes(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions
 
 def train_bc(config: BCConfig, resume: bool = False) -> Path:
     """Train (or continue) a BC run; returns the checkpoint path."""
+    with RunLock(config.out) as lock:
+        return _train_bc(config, resume, lock)
+
+
+def _train_bc(config: BCConfig, resume: bool, lock: RunLock) -> Path:
     if not config.demos:
         raise PomilError("bc: --demos is required (a demonstrations .npz file)")
     run_dir = Path(config.out)
@@ -168,12 +171,21 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
     policy = GaussianPolicy(arch).to(device)
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
-    start = resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device) if resume else 0
+    if config.batch_episodes > demos.num_episodes:
+        print(f"pomil: note: batch_episodes {config.batch_episodes} is more than the {demos.num_episodes} demonstration "
+              f"episodes; each batch draws {demos.num_episodes}", file=sys.stderr)
+    lock.acquire(resume)
+    start = (resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device)
+             if resume else RunStart()).iteration
+    if start == config.iterations:
+        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
+        return ckpt_path
     write_json(run_dir / "config.json", {"algo": "bc", **to_dict(config)})
 
     data = demos.padded(device)
     prev_all = shift_actions(executed_actions_fn(env_id, env_kwargs)(data.actions))
     logger = RunLogger(run_dir, config.iterations, start, config.progress, desc="bc", key_stats=("bc/nll", "bc/action_mse"))
+    guard = DivergenceGuard(ckpt_path, {"bc": lr_hint(config, "lr"), "policy": lr_hint(config, "lr")}, start, logger.close)
 
     def checkpoint(iteration: int) -> None:
         logger.flush()
@@ -183,10 +195,14 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
             "policy_arch": arch.to_dict(), "policy": policy.state_dict(),
             "optimizers": {"policy": optimizer.state_dict()}, "rng": rng_state(generator),
         })
+        guard.saved(iteration)
 
     t0 = time.perf_counter()
     for iteration in range(start + 1, config.iterations + 1):
         stats = bc_step(policy, optimizer, data, prev_all, config.batch_episodes, generator)
+        guard.value(iteration, "bc loss (negative log-likelihood)", stats["bc/nll"])
+        guard.grads(iteration, "policy", policy.parameters())  # the step's gradients are still on the parameters
+        guard.params(iteration, {"policy": policy})
         if iteration % config.log_every == 0 or iteration in (1, config.iterations):
             stats["time/elapsed_s"] = time.perf_counter() - t0
             logger.log(iteration, stats)

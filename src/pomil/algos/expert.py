@@ -14,6 +14,7 @@ locomotion.
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import Literal
 
 import torch
 
-from pomil.config import RunConfig, check_positive, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.envs.locomotion import HOPPER_ID, locomotion_kwargs
 from pomil.envs.wrappers import parse_mask, resolve_observation_mask
@@ -32,7 +33,10 @@ from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.rl.collect import collect
 from pomil.rl.gae import gae
 from pomil.rl.ppo import normalize, ppo_loss
-from pomil.training import RunLogger, resolve_device, resume_run, rng_state, save_checkpoint, seed_everything, write_json
+from pomil.training import (
+    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
+    save_checkpoint, seed_everything, write_json,
+)
 
 
 @dataclass(frozen=True)
@@ -46,31 +50,29 @@ class ExpertConfig(RunConfig):
                                              "and setting, e.g. ctrl_cost_weight=0.05,max_episode_steps=200")
     observation_mask: str = option("", "what the expert observes: '' (everything), positions-only, or comma-separated indices")
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)")
-    num_envs: int = option(64, "environment copies stepped together")
+    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
+                             within="[1, inf)")
+    num_envs: int = option(64, "environment copies stepped together", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
-                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on")
-    hidden_size: int = option(64, "width of the policy's and value's hidden layers")
-    lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)")
-    epochs: int = option(10, "PPO epochs per iteration")
-    minibatches: int = option(16, "minibatches per epoch")
-    clip: float = option(0.2, "PPO ratio clip")
-    gamma: float = option(0.99, "discount")
-    gae_lambda: float = option(0.95, "GAE lambda")
-    ent_coef: float = option(0.0, "entropy bonus")
-    vf_coef: float = option(0.5, "value-loss weight")
-    max_grad_norm: float = option(0.5, "gradient-norm clip")
-    log_std_init: float = option(0.0, "initial log std of the policy")
-    log_every: int = option(5, "iterations between log rows")
-    checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)")
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on",
+                                     within="[0, inf)")
+    hidden_size: int = option(64, "width of the policy's and value's hidden layers", within="[1, inf)")
+    lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)", within="(0, inf)")
+    epochs: int = option(10, "PPO epochs per iteration", within="[1, inf)")
+    minibatches: int = option(16, "minibatches per epoch", within="[1, inf)")
+    clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
+    gamma: float = option(0.99, "discount", within="(0, 1]")
+    gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
+    ent_coef: float = option(0.0, "entropy bonus", within="[0, inf)")
+    vf_coef: float = option(0.5, "value-loss weight", within="[0, inf)")
+    max_grad_norm: float = option(0.5, "gradient-norm clip", within="(0, inf)")
+    log_std_init: float = option(0.0, "initial log std of the policy", within="(-inf, inf)")
+    log_every: int = option(5, "iterations between log rows", within="[1, inf)")
+    checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)",
+                                   within="[1, inf)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, "iterations", "num_envs", "hidden_size", "epochs", "minibatches")
-        if self.lr <= 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.rollout_threads < 0:
-            raise ValueError(f"rollout_threads must be >= 0, got {self.rollout_threads}")
 
     def env_settings(self) -> tuple[dict, list[int] | None]:
         """(constructor keywords, observation indices or None); ValueError when the env rejects them."""
@@ -108,6 +110,12 @@ def discounted_returns(rewards: torch.Tensor, mask: torch.Tensor, gamma: float) 
 
 
 def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
+    """Train (or continue) a PPO expert; returns the checkpoint path."""
+    with RunLock(cfg.out) as lock:
+        return _train_expert(cfg, resume, lock)
+
+
+def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
     run_dir = Path(cfg.out)
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(cfg.device)
@@ -129,10 +137,18 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
     params = list(policy.parameters()) + list(value.parameters())
     opt = torch.optim.Adam(params, lr=cfg.lr, eps=1e-5)
     nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
-    start = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else 0
+    lock.acquire(resume)
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else RunStart()
+    start = resumed.iteration
+    if start == cfg.iterations:
+        raw_env.close()
+        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
+        return ckpt_path
     write_json(run_dir / "config.json", {"algo": "expert", **to_dict(cfg)})
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.env_id} {cfg.task}",
                        key_stats=("env/return", "ppo/approx_kl"))
+    lr = lr_hint(cfg, "lr")
+    guard = DivergenceGuard(ckpt_path, {"policy": lr, "value": lr}, start, logger.close)
     env_info = {"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}
 
     def checkpoint(iteration: int) -> None:
@@ -141,10 +157,11 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
             "algo": "expert", "iteration": iteration, "config": to_dict(cfg), "env": env_info,
             "policy_arch": arch.to_dict(), "policy": policy.state_dict(), "obs_norm": obs_norm.state_dict(),
             "nets": {k: n.state_dict() for k, n in nets.items()},
-            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen),
+            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen), "env_steps": steps_done,
         })
+        guard.saved(iteration)
 
-    steps_done = 0
+    steps_done = resumed.env_steps
     t_start = time.perf_counter()
     for it in range(start + 1, cfg.iterations + 1):
         for group in opt.param_groups:
@@ -153,6 +170,7 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
         steps_done += int(roll.mask.sum())
         # Rewards divided by the running std of the discounted return.
         reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
+        guard.value(it, "environment reward", raw_rewards)
         r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)
         adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
         roll = roll.with_(rewards=r, advantages=adv, returns=ret)
@@ -163,10 +181,13 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
                 new_v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts)
                 loss, stats = ppo_loss(dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v,
                                        b.values, b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, None, cfg.vf_coef, cfg.ent_coef)
+                guard.value(it, "policy loss (PPO)", stats["ppo/policy_loss"])
+                guard.value(it, "value loss", stats["ppo/value_loss"])
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
+                guard.value(it, "policy and value gradient norm", torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm))
                 opt.step()
+        guard.params(it, nets)
         if it % cfg.log_every == 0 or it in (1, cfg.iterations):
             elapsed = time.perf_counter() - t_start
             stats.update({"env/return": raw_rewards.sum(0).mean().item(), "env/steps": float(steps_done),

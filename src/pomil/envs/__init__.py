@@ -42,6 +42,12 @@ def env_dims(env_id: str, env_kwargs: dict[str, Any], observation_mask: Sequence
     return obs_dim, act_dim
 
 
+def state_dim(env_id: str, env_kwargs: dict[str, Any]) -> int:
+    """Columns of the demonstrations' ``states`` for an environment: the circles'
+    positions (2), otherwise the full (unmasked) observation."""
+    return 2 if env_id == CIRCLES_ID else env_dims(env_id, env_kwargs)[0]
+
+
 def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
                  observation_mask: Sequence[int] | None = None, seed: int | None = None):
     """The batched (torch) environment training uses for ``env_id``.

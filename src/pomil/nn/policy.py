@@ -57,7 +57,9 @@ class GaussianPolicy(nn.Module):
         mean = self.mean(features)
         if self.arch.tanh_mean:
             mean = torch.tanh(mean)
-        return Normal(mean, self.log_std.exp().expand_as(mean))
+        # No argument validation: the NaN of a diverging policy must reach the loss, where the
+        # divergence guard names it (pomil.training), not end deep inside torch.distributions.
+        return Normal(mean, self.log_std.exp().expand_as(mean), validate_args=False)
 
     def step(self, obs, prev_action, h, start, codes=None) -> tuple[Normal, torch.Tensor]:
         """One step for N environments: obs (N, obs_dim) ... -> (dist, new h)."""
