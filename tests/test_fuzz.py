@@ -16,7 +16,6 @@ import json
 import math
 import shutil
 import tempfile
-import zipfile
 from pathlib import Path
 
 import numpy as np
