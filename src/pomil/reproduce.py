@@ -206,17 +206,19 @@ def _circles_job(cfg: CirclesReproConfig, name: str, seed: int) -> dict[str, Any
     return {"metrics": metrics, "wall_s": wall, "positions": roll["positions"], "codes": roll["codes"]}
 
 
-def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable) -> dict[tuple[str, int], dict[str, Any]]:
-    """Every (learner, seed) of a reproduction, in order or on Ray; the first failure stops it."""
+def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable,
+             names: tuple[str, ...] | None = None) -> dict[tuple[str, int], dict[str, Any]]:
+    """Every (name, seed) of a reproduction, in order or on Ray; the first failure stops it.
+    ``names``: the learners (default) or, for circles-modes, the cases."""
     from pomil.parallel import run_jobs
 
     if cfg.ray:  # workers may start elsewhere: every path absolute
         where = cfg.path if hasattr(cfg, "path") else (lambda k: getattr(cfg, k))  # Hopper's defaults live in path()
-        absolute = {k: str(Path(where(k)).resolve()) for k in ("out", "runs", "demos")}
+        absolute = {k: str(Path(where(k)).resolve()) for k in ("out", "runs", "demos") if hasattr(cfg, k)}
         if cfg.adversarial_config:
             absolute["adversarial_config"] = str(Path(cfg.adversarial_config).resolve())
         cfg = dataclasses.replace(cfg, progress=False, **absolute)
-    keys = [(name, seed) for name in cfg.learners for seed in range(cfg.seeds)]
+    keys = [(name, seed) for name in (names or cfg.learners) for seed in range(cfg.seeds)]
     results = run_jobs(job, [(cfg, name, seed) for name, seed in keys], [f"[{n}] seed {s}" for n, s in keys],
                        ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report)
     return {key: r.value for key, r in zip(keys, results)}
@@ -315,23 +317,13 @@ def reproduce_circles_modes(cfg: CirclesModesConfig) -> dict[str, Any]:
         if not path.exists():
             spec = CirclesSpec(MODES_CASES[case])
             record_circles_demos(spec, cfg.episodes_per_mode * spec.num_modes, seed=0).save(path)
-    if cfg.ray:  # workers may start elsewhere: every path absolute
-        absolute = {"runs": str(Path(cfg.runs).resolve())}
-        if cfg.adversarial_config:
-            absolute["adversarial_config"] = str(Path(cfg.adversarial_config).resolve())
-        cfg = dataclasses.replace(cfg, progress=False, **absolute)
-    from pomil.parallel import run_jobs
-
-    keys = [(case, seed) for case in cfg.cases for seed in range(cfg.seeds)]
 
     def report(r, n, total) -> None:
         m = r.value["metrics"]
         print(f"[{n}/{total}] {r.name}: min purity {m['min_purity']:.2f}, modes covered {m['modes_covered']}, "
               f"NMI {m['nmi']:.2f}{'' if m['success'] else ' (below target)'} ({r.wall_s:.0f} s)", flush=True)
 
-    done = run_jobs(_modes_job, [(cfg, c, s) for c, s in keys], [f"[{c}] seed {s}" for c, s in keys],
-                    ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report)
-    by_key = {key: r.value for key, r in zip(keys, done)}
+    by_key = _run_all(cfg, _modes_job, report, names=cfg.cases)
     results: dict[str, Any] = {
         "experiment": "circles-modes", "config": to_dict(cfg), "learner": cfg.learner, "seeds": cfg.seeds,
         "episodes_per_code": cfg.episodes_per_code, "success_criteria": MODES_SUCCESS,
