@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pomil.data import Demonstrations
-from pomil.errors import DataError
+from pomil.errors import DataError, PomilError
 
 
 def test_round_trip_keeps_every_array_and_metadata(demos, tmp_path):
@@ -120,7 +120,7 @@ def test_failed_save_leaves_nothing_behind(demos, tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(np, "savez_compressed", boom)
-    with pytest.raises(OSError):
+    with pytest.raises(PomilError, match="out.npz: cannot write \\(disk full\\); nothing was written"):
         demos.save(tmp_path / "out.npz")
     assert list(tmp_path.iterdir()) == []
 

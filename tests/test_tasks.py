@@ -208,7 +208,7 @@ def test_training_overrides_remask_full_observations_and_replace_env_keywords(tm
         load_training_demos(str(tmp_path / "n.npz"), {}, [0])
     # the CLI: a policy on height + two velocities, in 16-step episodes
     r = pomil("train", "infogail-pomdp", "--demos", path, "--observation-mask", "0,5,6", "--env-kwargs", "max_episode_steps=16",
-              "--iterations", 1, "--num-envs", 2, "--bc-init-iterations", 1, "--eval-every", 0, "--out", tmp_path / "r",
+              "--iterations", 1, "--num-envs", 2, "--minibatches", 2, "--bc-init-iterations", 1, "--eval-every", 0, "--out", tmp_path / "r",
               "--no-progress")
     assert r.returncode == 0, r.stderr
     from pomil.api import TrainedPolicy
@@ -231,7 +231,8 @@ def test_reproduce_tasks_and_a_sequential_sweep_on_any_task(tmp_path):
         assert r.returncode == 0, r.stderr
     r = pomil("demos", "merge", tmp_path / "up.npz", tmp_path / "down.npz", "--out", tmp_path / "m.npz")
     assert r.returncode == 0, r.stderr
-    tiny = {"num_envs": 2, "bc_init_iterations": 1, "posterior_init_iterations": 1, "hidden_size": 8, "eval_every": 1, "eval_episodes": 1}
+    tiny = {"num_envs": 2, "minibatches": 2,
+            "bc_init_iterations": 1, "posterior_init_iterations": 1, "hidden_size": 8, "eval_every": 1, "eval_episodes": 1}
     (tmp_path / "adv.json").write_text(json.dumps(tiny))
     r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res", "--learners", "infogail-pomdp",
               "--seeds", 1, "--adversarial-iterations", 1, "--episodes-per-code", 1, "--adversarial-config", tmp_path / "adv.json",

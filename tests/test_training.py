@@ -90,7 +90,7 @@ def test_adversarial_nan_critic_loss_at_iteration_3_keeps_checkpoint_2_and_resum
     out = tmp_path / "adv"
     _nan_on_call(monkeypatch, adversarial, "critic_loss", 3, "critic/loss")
     with pytest.raises(DivergenceError, match=r"^iteration 3: critic loss is nan \(the run diverged\); try a lower "
-                                              r"--lr-critic \(now 0.0002\); .*\(iteration 2\) is unchanged"):
+                                              r"--lr-critic \(now 0.0005\); .*\(iteration 2\) is unchanged"):
         train_adversarial(_adv(demos_path, out))
     before = (out / "checkpoint.pt").read_bytes()
     assert load_checkpoint(out)["iteration"] == 2
@@ -134,7 +134,7 @@ def test_nan_gradient_and_reward_are_named(demos_path, tmp_path, monkeypatch):
         return r.index_fill(1, torch.tensor([3]), math.inf), s
 
     monkeypatch.setattr(adversarial, "rewards", nan_reward)
-    with pytest.raises(DivergenceError, match=r"^iteration 1: reward is inf .*try a lower --lr-critic \(now 0.0002\) or "
+    with pytest.raises(DivergenceError, match=r"^iteration 1: reward is inf .*try a lower --lr-critic \(now 0.0005\) or "
                                               r"--lr-posterior \(now 0.0002\); "):
         train_adversarial(_adv(demos_path, tmp_path / "r"))
     monkeypatch.undo()
