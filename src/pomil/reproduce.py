@@ -49,18 +49,24 @@ class RayOptions:
 
 
 @dataclass(frozen=True)
-class CirclesReproConfig(RayOptions):
-    out: str = option("runs/results/circles", "results directory (metrics.json, table.md, figure.png); the committed "
-                                              "results are results/circles (pass --out results/circles to update them)")
-    runs: str = option("runs/circles", "where each run's checkpoint and logs go")
-    demos: str = option("data/circles.npz", "demonstrations; recorded (400 episodes, seed 0) if missing")
-    seeds: int = option(10, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
+class LearnerRuns(RayOptions):
+    """What a reproduction over learners has: which learners, and how long each trains."""
+
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
                                        "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
     bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)", within="[0, inf)")
     adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)",
                                          within="[0, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
+
+
+@dataclass(frozen=True)
+class CirclesReproConfig(LearnerRuns):
+    out: str = option("runs/results/circles", "results directory (metrics.json, table.md, figure.png); the committed "
+                                              "results are results/circles (pass --out results/circles to update them)")
+    runs: str = option("runs/circles", "where each run's checkpoint and logs go")
+    demos: str = option("data/circles.npz", "demonstrations; recorded (400 episodes, seed 0) if missing")
+    seeds: int = option(10, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
     episodes_per_code: int = option(100, "evaluation rollouts per latent code", within="[1, inf)")
     progress: bool = option(True, "show progress bars")
 
@@ -356,7 +362,7 @@ METRICS = ("normalised_return", "progress", "displacement_ratio")
 
 
 @dataclass(frozen=True)
-class HopperReproConfig(RayOptions):
+class HopperReproConfig(LearnerRuns):
     setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
     out: str = option("", "results directory (default: runs/results/hopper[-standard]; the committed results are "
                           "results/hopper[-standard])")
@@ -364,12 +370,6 @@ class HopperReproConfig(RayOptions):
     demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
     demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded", within="[1, inf)")
     seeds: int = option(3, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
-    learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
-                                       "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
-    bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)", within="[0, inf)")
-    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)",
-                                         within="[0, inf)")
-    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
     episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)",
                                     within="[1, inf)")
     progress: bool = option(True, "show progress bars")
