@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from pomil.errors import PomilError
 import torch
 
 from pomil.data import Demonstrations
@@ -121,7 +123,7 @@ def test_failed_save_leaves_nothing_behind(demos, tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(np, "savez_compressed", boom)
-    with pytest.raises(OSError):
+    with pytest.raises(PomilError, match=r"out.npz: cannot write \(disk full\); nothing was written$"):
         demos.save(tmp_path / "out.npz")
     assert list(tmp_path.iterdir()) == []
 
