@@ -12,6 +12,7 @@ that have none (behaviour cloning, GAIL).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -51,7 +52,12 @@ class TrainedPolicy:
         device = resolve_device(device)  # a bad device is reported as one, before the file is read
         ckpt = load_checkpoint(path, map_location=device)
         try:
-            policy = GaussianPolicy(PolicyArch(**ckpt["policy_arch"]))
+            arch = PolicyArch(**ckpt["policy_arch"])
+            for f in dataclasses.fields(arch):  # the file's values, with the declared types (no tensors, no None)
+                value, tp = getattr(arch, f.name), {"int": int, "float": (int, float), "bool": bool, "str": str}[f.type]
+                if not isinstance(value, tp) or (f.type != "bool" and isinstance(value, bool)):
+                    raise TypeError(f"policy_arch.{f.name} is {value!r:.40}")
+            policy = GaussianPolicy(arch)
             policy.load_state_dict(ckpt["policy"])
             obs_norm = None
             if ckpt.get("obs_norm") is not None:

@@ -106,9 +106,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except Exception as err:  # torch raises many types for foreign/corrupt files
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise PomilError(f"{path}: not a pomil checkpoint ({first[:160]})") from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+    if not isinstance(payload, dict) or not isinstance(payload.get("format"), str) or payload["format"] != CHECKPOINT_FORMAT:
         raise PomilError(f"{path}: not a pomil checkpoint (missing 'format: {CHECKPOINT_FORMAT}')")
-    if payload.get("version") != CHECKPOINT_VERSION:
+    if type(payload.get("version")) is not int or payload["version"] != CHECKPOINT_VERSION:
         raise PomilError(f"{path}: checkpoint version {payload.get('version')} is not supported (expected {CHECKPOINT_VERSION})")
     bad = first_nonfinite({k: v for k, v in payload.items() if k != "config"})
     if bad is not None:
@@ -150,8 +150,8 @@ def resume_run(
     and environment-step count.
 
     ``nets`` maps a key of the checkpoint's ``nets`` (or ``policy``) to a module;
-    None entries are skipped.  The optimisers keep the learning rates they were built
-    with (the run's config), so that a resumed run may lower them.  A config whose
+    None entries are skipped.  The optimisers keep the hyperparameters they were built
+    with (the run's config), so that a resumed run may lower its learning rates.  A config whose
     ``iterations`` is below the checkpoint's iteration is refused.
     """
     if not ckpt_path.exists():
@@ -173,11 +173,15 @@ def resume_run(
             if net is not None:
                 net.load_state_dict(saved_nets[k])
         for k, opt in optimizers.items():
-            lrs = [g["lr"] for g in opt.param_groups]
+            # Hyperparameters come from the run's config and code, not from the file: the
+            # learning rates may have been lowered, and a damaged file cannot break the next step.
+            hypers = [{key: v for key, v in g.items() if key != "params"} for g in opt.param_groups]
             opt.load_state_dict(ckpt["optimizers"][k])
             check_optimizer_state(opt)
-            for g, lr in zip(opt.param_groups, lrs):
-                g["lr"] = lr
+            for g, h in zip(opt.param_groups, hypers):
+                for key in set(g) - set(h) - {"params"}:
+                    del g[key]
+                g.update(h)
         restore_rng(ckpt["rng"], generator)
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
         first = (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
@@ -188,16 +192,17 @@ def resume_run(
 
 def check_optimizer_state(opt: torch.optim.Optimizer) -> None:
     """ValueError unless every parameter's state has the same keys, each a tensor of the
-    parameter's shape, and ``step`` is one number: load_state_dict takes a damaged state,
-    and the next step would fail."""
+    parameter's shape, and ``step`` is one number >= 1: load_state_dict takes a damaged
+    state, and the next step would fail."""
     states = [(p, opt.state[p]) for group in opt.param_groups for p in group["params"] if p in opt.state]
     keys = set().union(*(s.keys() for _, s in states)) if states else set()
     for p, state in states:
         if set(state) != keys:
             raise ValueError(f"optimizer state keys {sorted(state)}, expected {sorted(keys)}")
         for key, v in state.items():
-            if key == "step":
-                if not (isinstance(v, (int, float)) or (isinstance(v, torch.Tensor) and v.numel() == 1)):
+            if key == "step":  # steps taken: a number >= 1 (Adam divides by 1 - beta ** step)
+                n = v.item() if isinstance(v, torch.Tensor) and v.numel() == 1 and not v.is_complex() else v
+                if isinstance(n, bool) or not isinstance(n, (int, float)) or not 1 <= n < float("inf"):
                     raise ValueError(f"optimizer 'step' is {v!r:.60}")
             elif not isinstance(v, torch.Tensor) or v.shape != p.shape:
                 raise ValueError(f"optimizer state '{key}' is not a tensor of its parameter's shape {tuple(p.shape)}")

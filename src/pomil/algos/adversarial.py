@@ -164,9 +164,6 @@ class AdversarialConfig(RunConfig):
         super().__post_init__()  # every field in its interval (see the option declarations)
         if self.num_codes in (0, 1):
             raise ConfigError(f"config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got {self.num_codes}")
-        if self.update_mode == "sequence" and self.minibatches > self.num_envs:
-            raise ConfigError(f"config key 'minibatches': expected at most num_envs ({self.num_envs}) whole episodes "
-                              f"per epoch in sequence mode, got {self.minibatches}")
 
 
 @dataclass
@@ -372,6 +369,9 @@ def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> P
     if m.posterior is not None:
         opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
     nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
+    if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
+        print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch has "
+              f"{cfg.num_envs} minibatches of one episode", file=sys.stderr)
     lock.acquire(resume)
     resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else RunStart()
     start = resumed.iteration
