@@ -107,15 +107,17 @@ def _adversarial(learner: str) -> Callable[[Any, int, Path], Path]:
     return run
 
 
-def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path):
-    """The defaults, then the user's --adversarial-config file, then this run's own fields."""
+def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: str | None = None):
+    """The defaults, then the user's --adversarial-config file, then this run's own fields
+    (``demos``: default the reproduction's ``demos_file``)."""
     from pomil.algos.adversarial import AdversarialConfig
     from pomil.config import from_dict, load_config_file
 
-    values: dict[str, Any] = {"iterations": cfg.adversarial_iterations} if cfg.adversarial_iterations else {}
+    iterations = getattr(cfg, "adversarial_iterations", 0)
+    values: dict[str, Any] = {"iterations": iterations} if iterations else {}
     if cfg.adversarial_config:
         values.update(load_config_file(cfg.adversarial_config))
-    values.update(learner=learner, demos=cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress)
+    values.update(learner=learner, demos=demos or cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress)
     return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the reproduction's settings")
 
 
@@ -287,15 +289,11 @@ class CirclesModesConfig(RayOptions):
 
 
 def _modes_job(cfg: CirclesModesConfig, case: str, seed: int) -> dict[str, Any]:
-    from pomil.algos.adversarial import AdversarialConfig, train_adversarial
-    from pomil.config import from_dict, load_config_file
+    from pomil.algos.adversarial import train_adversarial
 
     t0 = time.perf_counter()
     run_dir = Path(cfg.runs) / case / f"seed{seed}"
-    values = load_config_file(cfg.adversarial_config) if cfg.adversarial_config else {}
-    values.update(learner=cfg.learner, demos=str(Path(cfg.runs) / f"{case}.npz"), out=str(run_dir), seed=seed,
-                  progress=cfg.progress)
-    ckpt = train_adversarial(from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "config"))
+    ckpt = train_adversarial(adversarial_config(cfg, cfg.learner, seed, run_dir, demos=str(Path(cfg.runs) / f"{case}.npz")))
     wall = time.perf_counter() - t0
     metrics, _ = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
     metrics.update(checkpoint=str(ckpt), train_seed=seed, success=modes_success(metrics))
