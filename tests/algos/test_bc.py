@@ -108,25 +108,68 @@ def test_unroll_every_code_agrees_with_unroll_per_code():
         torch.testing.assert_close(every.stddev[k], dist.stddev)
 
 
-def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code():
-    """Episodes look the same but half act +0.6 and half -0.6: a code per episode must
-    explain the difference, and the mixture likelihood gives each cluster its own code."""
-    from pomil.algos.bc import bc_step, most_likely_codes
+def _two_clusters():
+    """Episodes that look the same but half act +0.6 and half -0.6 (data, prev actions, cluster per episode)."""
     from pomil.data import PaddedEpisodes
-    from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+    from pomil.nn.policy import shift_actions
 
-    torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)
     T, E = 12, 64
     cluster = torch.arange(E) % 2
     obs = torch.randn(T, E, 2, generator=g)
     actions = (torch.where(cluster == 0, 0.6, -0.6).view(1, E, 1) + 0.05 * torch.randn(T, E, 1, generator=g)).expand(T, E, 2).contiguous()
-    data = PaddedEpisodes(obs, actions, torch.ones(T, E, dtype=torch.bool))
+    return PaddedEpisodes(obs, actions, torch.ones(T, E, dtype=torch.bool)), shift_actions(actions), cluster
+
+
+def test_dataset_assignment_keeps_an_over_sampled_cluster_on_its_own_code():
+    """A batch of 6 episodes of one cluster and 2 of the other: balancing within the batch
+    hands 2 of the 6 to the other cluster's code; the dataset-wide assignment does not."""
+    from pomil.algos.bc import MixtureAssignment, balanced_responsibilities, episode_log_likelihoods, mixture_bc_loss
+    from pomil.nn.policy import GaussianPolicy, PolicyArch
+
+    torch.manual_seed(0)
+    data, prev, cluster = _two_clusters()
+    policy = GaussianPolicy(PolicyArch(2, 2, "mlp", 32, num_codes=2))
+    ll = episode_log_likelihoods(policy, data, prev, chunk=5)  # chunked == whole
+    torch.testing.assert_close(ll, episode_log_likelihoods(policy, data, prev, chunk=64))
+    assert ll.shape == (2, 64)
+    # scores as a trained mixture would give them: each cluster far more likely under its own code
+    scores = torch.stack([torch.where(cluster == 0, 20.0, -20.0), torch.where(cluster == 0, -20.0, 20.0)])
+    idx = torch.cat([torch.nonzero(cluster == 0).flatten()[:6], torch.nonzero(cluster == 1).flatten()[:2]])
+    own = torch.nn.functional.one_hot(cluster[idx], 2).T.float()
+    per_batch = balanced_responsibilities(scores[:, idx])
+    wrong = per_batch * (1 - own)
+    assert wrong.sum().item() == pytest.approx(2.0, abs=1e-3)  # two episodes' worth forced onto the other code
+    torch.testing.assert_close(wrong[1, :6], torch.full((6,), 1 / 3), atol=1e-3, rtol=0)  # a third of each of the 6
+    torch.testing.assert_close(balanced_responsibilities(scores)[:, idx], own, atol=1e-4, rtol=0)
+    # MixtureAssignment recomputes from the policy every `refresh` calls and otherwise keeps its answer
+    assignment = MixtureAssignment(data, prev, refresh=3)
+    first = assignment.update(policy)
+    torch.testing.assert_close(first, balanced_responsibilities(ll))
+    torch.testing.assert_close(first.argmax(0), mixture_bc_loss(policy, data, prev)[1].argmax(0))
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.5)
+    assert assignment.update(policy) is first and assignment.update(policy) is first
+    assert not torch.equal(assignment.update(policy), first)
+
+
+@pytest.mark.parametrize("balance", ["batch", "dataset"])
+def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code(balance):
+    """Episodes look the same but half act +0.6 and half -0.6: a code per episode must
+    explain the difference, and the mixture likelihood gives each cluster its own code."""
+    from pomil.algos.bc import MixtureAssignment, bc_step, most_likely_codes
+    from pomil.nn.policy import GaussianPolicy, PolicyArch
+
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(1)
+    data, prev, cluster = _two_clusters()
+    obs, T, E = data.observations, *data.mask.shape
     policy = GaussianPolicy(PolicyArch(2, 2, "mlp", 32, num_codes=2))
     opt = torch.optim.Adam(policy.parameters(), lr=3e-3)
-    prev = shift_actions(actions)
+    assignment = MixtureAssignment(data, prev) if balance == "dataset" else None
     for _ in range(150):
-        stats = bc_step(policy, opt, data, prev, 32, g, num_codes=2, mixture=True)
+        stats = bc_step(policy, opt, data, prev, 32, g, num_codes=2, mixture=True, assignment=assignment)
     codes = most_likely_codes(policy, data, prev)
     agreement = (codes == cluster).float().mean().item()
     assert max(agreement, 1 - agreement) == 1.0, codes  # codes are a relabelling of the clusters

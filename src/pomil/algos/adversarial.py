@@ -41,7 +41,7 @@ from typing import Any, Callable, ClassVar, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
+from pomil.algos.bc import MixtureAssignment, bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
@@ -131,6 +131,9 @@ class AdversarialConfig(RunConfig):
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
     bc_init_codes: Literal["random", "mixture"] = option("mixture", "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes (mixture likelihood)")
+    mixture_balance: Literal["dataset", "batch"] = option("dataset", "with bc_init_codes mixture: every code takes 1/K of "
+                                                          "all demonstration episodes (dataset, refreshed every 10 steps) or "
+                                                          "of each random batch (batch: noisier, see MixtureAssignment)")
     posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
                                                  "each episode labelled with its most likely code", within="[0, inf)")
     log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
@@ -386,6 +389,7 @@ def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> P
     mixture = cfg.bc_init_codes == "mixture" and num_codes > 0  # the warm start's and the BC term's likelihood
     init_stats = (bc_warm_start(m, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
                   if start == 0 and cfg.bc_init_iterations > 0 else {})
+    assignment = mixture_assignment(cfg, expert, expert_prev, mixture)  # the BC term's
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
                        key_stats=("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein"))
     guard.on_stop = logger.close
@@ -466,7 +470,7 @@ def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> P
                 if frozen is not None:
                     b = _window_behaviour(b, *frozen)
                 if cfg.bc_weight > 0:  # the BC term's demonstrations go through the policy's encoder with the minibatch
-                    demo, demo_prev = demo_batch(expert, expert_prev, cfg.bc_init_batch, gen)
+                    demo, demo_prev, demo_idx = demo_batch(expert, expert_prev, cfg.bc_init_batch, gen)
                     feats, demo_feats = policy_and_demo_features(m.policy, b, demo, demo_prev)
                 else:
                     feats, _ = m.policy.features(b.observations, b.prev_actions, b.h0_policy, b.starts)
@@ -477,7 +481,8 @@ def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> P
                     b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, cfg.value_clip or None, 0.5, cfg.ent_coef,
                 )
                 if cfg.bc_weight > 0:
-                    bc, bc_stats = demo_nll(m.policy, demo_feats, demo, gen, num_codes, mixture)
+                    resp = assignment.update(m.policy)[:, demo_idx] if assignment is not None else None
+                    bc, bc_stats = demo_nll(m.policy, demo_feats, demo, gen, num_codes, mixture, resp)
                     loss = loss + cfg.bc_weight * bc
                     s["ppo/bc_nll"] = bc_stats["bc/nll"]
                 guard.value(it, "policy loss (PPO)", s["ppo/policy_loss"])
@@ -533,6 +538,12 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
     return b.with_(log_probs=dist.log_prob(b.actions).sum(-1), values=v)
 
 
+def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_prev: torch.Tensor,
+                       mixture: bool) -> MixtureAssignment | None:
+    """The dataset-wide code assignment of the mixture warm start and BC term (None: balanced per batch)."""
+    return MixtureAssignment(expert, expert_prev) if mixture and cfg.mixture_balance == "dataset" else None
+
+
 def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
                   cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
@@ -546,8 +557,9 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
     opt = torch.optim.Adam(m.policy.parameters(), lr=cfg.bc_init_lr)
     stats: dict[str, float] = {}
+    assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
     for step in range(1, cfg.bc_init_iterations + 1):
-        stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture)
+        stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
         if guard is not None:
             where = f"warm-start step {step}"
             guard.value(where, "warm-start loss (negative log-likelihood)", stats["bc/nll"])

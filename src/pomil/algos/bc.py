@@ -75,21 +75,60 @@ def _nll(policy: GaussianPolicy, dist, actions: torch.Tensor, mask: torch.Tensor
 
 
 def demo_batch(data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
-               generator: torch.Generator) -> tuple[PaddedEpisodes, torch.Tensor]:
-    """A random batch of whole demonstration episodes and their previous actions."""
+               generator: torch.Generator) -> tuple[PaddedEpisodes, torch.Tensor, torch.Tensor]:
+    """A random batch of whole demonstration episodes, their previous actions and their indices."""
     n_ep = data.mask.shape[1]
     idx = torch.randint(n_ep, (min(batch_episodes, n_ep),), generator=generator).to(data.mask.device)
-    return data.select(idx), prev_actions[:, idx]
+    return data.select(idx), prev_actions[:, idx], idx
+
+
+class MixtureAssignment:
+    """Which code clones which demonstration episode: balanced responsibilities (K, E) over the
+    *whole* demonstration set, recomputed from the policy every ``refresh`` calls of :meth:`update`.
+
+    Balancing each random batch on its own (every code takes 1/K of the batch) forces episodes
+    of whatever mode the batch over-samples onto other codes, most often the code of the most
+    similar mode; with 6 modes and 64 episodes a batch holds 10.7 +- 3 episodes per mode, so each
+    code keeps learning a share of its neighbour's behaviour and the policy drifts onto the
+    neighbouring circle in 5-15% of its episodes.  Balancing over all episodes has no such noise.
+    """
+
+    def __init__(self, data: PaddedEpisodes, prev_actions: torch.Tensor, refresh: int = 10, chunk: int = 256) -> None:
+        self.data, self.prev_actions, self.refresh, self.chunk = data, prev_actions, refresh, chunk
+        self.responsibilities: torch.Tensor | None = None
+        self._calls = 0
+
+    def update(self, policy: GaussianPolicy) -> torch.Tensor:
+        """The current responsibilities (K, E), recomputed on every ``refresh``-th call."""
+        if self.responsibilities is None or self._calls % self.refresh == 0:
+            self.responsibilities = balanced_responsibilities(episode_log_likelihoods(policy, self.data, self.prev_actions, self.chunk))
+        self._calls += 1
+        return self.responsibilities
+
+
+@torch.no_grad()
+def episode_log_likelihoods(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor,
+                            chunk: int = 256) -> torch.Tensor:
+    """Each whole episode's log-likelihood under each of the policy's codes, (K, E)."""
+    out = []
+    for start in range(0, data.mask.shape[1], chunk):
+        idx = torch.arange(start, min(start + chunk, data.mask.shape[1]), device=data.mask.device)
+        part = data.select(idx)
+        dist = policy.dist_every_code(episode_features(policy, part.observations, prev_actions[:, idx], part.mask))
+        out.append((dist.log_prob(part.actions.unsqueeze(0)).sum(-1) * part.mask.to(part.actions.dtype)).sum(1))
+    return torch.cat(out, dim=1)
 
 
 def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisodes, generator: torch.Generator,
-             num_codes: int = 0, mixture: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+             num_codes: int = 0, mixture: bool = False,
+             responsibilities: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Behaviour-cloning loss of a batch of whole demonstration episodes from the policy's encoder
     features on them (:func:`episode_features`).  A policy with latent codes gets a random code per
     episode (demonstrations carry none), or, with ``mixture``, the codes' mixture likelihood
-    (:func:`mixture_bc_loss`)."""
+    (:func:`mixture_bc_loss`), each episode weighted by the given ``responsibilities`` (K, B)
+    (:class:`MixtureAssignment`), or by responsibilities balanced within the batch."""
     if mixture:
-        loss, _, stats = _mixture_nll(policy, policy.dist_every_code(features), batch)
+        loss, _, stats = _mixture_nll(policy, policy.dist_every_code(features), batch, responsibilities)
         return loss, stats
     b = batch.mask.shape[1]
     codes = (F.one_hot(torch.randint(num_codes, (b,), generator=generator), num_codes).float().to(features.device)
@@ -98,16 +137,21 @@ def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisod
 
 
 def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
-                 generator: torch.Generator, num_codes: int = 0, mixture: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
-    """Behaviour-cloning loss (:func:`demo_nll`) on a random batch of whole demonstration episodes."""
-    batch, prev = demo_batch(data, prev_actions, batch_episodes, generator)
-    return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator, num_codes, mixture)
+                 generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
+                 assignment: MixtureAssignment | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Behaviour-cloning loss (:func:`demo_nll`) on a random batch of whole demonstration episodes;
+    with ``mixture`` and an ``assignment``, each episode is cloned by the codes it assigns."""
+    batch, prev, idx = demo_batch(data, prev_actions, batch_episodes, generator)
+    resp = assignment.update(policy)[:, idx] if mixture and assignment is not None else None
+    return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator, num_codes,
+                    mixture, resp)
 
 
 def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
-            batch_episodes: int, generator: torch.Generator, num_codes: int = 0, mixture: bool = False) -> dict[str, float]:
+            batch_episodes: int, generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
+            assignment: MixtureAssignment | None = None) -> dict[str, float]:
     """One update of :func:`demo_bc_loss`."""
-    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes, generator, num_codes, mixture)
+    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes, generator, num_codes, mixture, assignment)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -128,10 +172,11 @@ def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: 
     return _mixture_nll(policy, policy.dist_every_code(feats), data)
 
 
-def _mixture_nll(policy: GaussianPolicy, dist_every_code, data: PaddedEpisodes) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+def _mixture_nll(policy: GaussianPolicy, dist_every_code, data: PaddedEpisodes,
+                 resp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
     m = data.mask.to(data.observations.dtype)
     ll = (dist_every_code.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)  # (K, B): each episode under each code
-    resp = balanced_responsibilities(ll.detach())
+    resp = balanced_responsibilities(ll.detach()) if resp is None else resp
     loss = -(resp * ll).sum() / m.sum()
     return loss, resp, {"bc/nll": loss.item(), "bc/responsibility_max": resp.max(0).values.mean().item(),
                         "bc/log_std": policy.log_std.mean().item()}
