@@ -20,6 +20,7 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     assert (cfg.critic_optimizer, cfg.gradient_penalty, cfg.weight_clip, cfg.lr_critic) == ("adam", 10.0, 0.0, 5e-4)
     assert (cfg.bc_init_codes, cfg.bc_init_iterations, cfg.bc_weight, cfg.lr, cfg.policy_warmup_iterations) == (
         "mixture", 3000, 10.0, 5e-5, 5)
+    assert cfg.mixture_balance == "dataset"
     assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "default")
     # a reproduction adds only the run's own fields to the defaults
     repro = adversarial_config(CirclesReproConfig(), "infogail-pomdp", 3, tmp_path)
