@@ -32,6 +32,7 @@ value, critic and posterior; codes; Wasserstein).
 from __future__ import annotations
 
 import copy
+import math
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -135,7 +136,7 @@ class AdversarialConfig(RunConfig):
     bc_init_codes: Literal["random", "mixture"] = option("mixture", "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes (mixture likelihood)")
     mixture_balance: Literal["dataset", "batch"] = option("dataset", "with bc_init_codes mixture: every code takes 1/K of "
-                                                          "all demonstration episodes (dataset, refreshed every 10 steps) or "
+                                                          "all demonstration episodes (dataset, refreshed every 10 steps or pass) or "
                                                           "of each random batch (batch: noisier, see MixtureAssignment)")
     posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
                                                  "each episode labelled with its most likely code", within="[0, inf)")
@@ -543,8 +544,12 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
 
 def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_prev: torch.Tensor,
                        mixture: bool) -> MixtureAssignment | None:
-    """The dataset-wide code assignment of the mixture warm start and BC term (None: balanced per batch)."""
-    return MixtureAssignment(expert, expert_prev) if mixture and cfg.mixture_balance == "dataset" else None
+    """The dataset-wide code assignment of the mixture warm start and BC term (None: balanced per batch),
+    refreshed every 10 steps or once per pass over the episodes, whichever is rarer: the refresh (one
+    forward pass over every episode) then costs at most about a third of the training steps between."""
+    if not (mixture and cfg.mixture_balance == "dataset"):
+        return None
+    return MixtureAssignment(expert, expert_prev, refresh=max(10, math.ceil(expert.mask.shape[1] / cfg.bc_init_batch)))
 
 
 def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
