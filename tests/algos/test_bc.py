@@ -178,3 +178,17 @@ def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code(balance):
         mean = policy.unroll_every_code(obs, prev, policy.initial_state(E), torch.zeros(T, E, dtype=torch.bool)).mean
     per_code = sorted(mean[k].mean().item() for k in range(2))
     assert per_code[0] == pytest.approx(-0.6, abs=0.05) and per_code[1] == pytest.approx(0.6, abs=0.05)
+
+
+def test_the_whole_set_assignment_refreshes_every_10_steps_or_once_per_pass():
+    from pomil.algos.adversarial import AdversarialConfig, mixture_assignment
+    from pomil.data import PaddedEpisodes
+
+    def episodes(n):
+        return PaddedEpisodes(torch.zeros(3, n, 2), torch.zeros(3, n, 2), torch.ones(3, n, dtype=torch.bool))
+
+    cfg = AdversarialConfig()  # bc_init_batch 64
+    assert mixture_assignment(cfg, episodes(600), torch.zeros(3, 600, 2), True).refresh == 10
+    assert mixture_assignment(cfg, episodes(2000), torch.zeros(3, 2000, 2), True).refresh == 32  # ceil(2000 / 64)
+    assert mixture_assignment(cfg, episodes(600), torch.zeros(3, 600, 2), False) is None  # no mixture: nothing to assign
+    assert mixture_assignment(AdversarialConfig(mixture_balance="batch"), episodes(600), torch.zeros(3, 600, 2), True) is None
