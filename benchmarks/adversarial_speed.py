@@ -18,7 +18,7 @@ from pathlib import Path
 
 from pomil.algos.adversarial import LEARNERS, train_adversarial
 from pomil.envs.circles import make_spec
-from pomil.experts import record_circles_demos
+from pomil.demos import record_circles_demos
 from pomil.reproduce import CirclesReproConfig, adversarial_config
 
 

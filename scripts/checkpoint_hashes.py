@@ -7,8 +7,8 @@ Run it before and after a change that must not alter what is computed::
     OMP_NUM_THREADS=1 python scripts/checkpoint_hashes.py --json     # the same as a JSON object
 
 The checkpoint hash covers every tensor, number and string in the checkpoint
-(network and optimiser states, RNG states, config, env) except the config's
-``out`` (where the run was written).  The metrics hash covers every logged
+(network and optimiser states, RNG states, env, iteration, ...) except its
+``config`` (which names the run directory, and gains keys as options are added).  The metrics hash covers every logged
 column of metrics.csv except the wall-clock ones (``time/...``).
 ``tests/test_checkpoint_hashes.py`` holds the hashes of this machine.
 """
@@ -50,9 +50,9 @@ def _feed(h: "hashlib._Hash", obj: Any) -> None:
 
 
 def checkpoint_hash(path: str | Path) -> str:
-    """sha256 of a checkpoint's contents, without the config's ``out``."""
+    """sha256 of a checkpoint's contents, without its ``config``."""
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    ckpt = {**ckpt, "config": {k: v for k, v in ckpt.get("config", {}).items() if k != "out"}}
+    ckpt = {k: v for k, v in ckpt.items() if k != "config"}
     h = hashlib.sha256()
     _feed(h, ckpt)
     return h.hexdigest()
@@ -89,7 +89,7 @@ def tiny_runs(out: Path) -> dict[str, tuple[str, Any]]:
             learner="infogail-pomdp", demos=hopper, out=str(out / "h"), eval_every=2, eval_episodes=1,
             policy_warmup_iterations=1, **tiny)),
         "circles-bc": ("bc", BCConfig(demos=circles, out=str(out / "b"), iterations=20, seed=0, progress=False, log_every=5)),
-        "hopper-expert": ("expert", ExpertConfig(out=str(out / "e"), iterations=2, num_envs=4, epochs=2, minibatches=4,
+        "hopper-expert": ("expert", ExpertConfig(out=str(out / "e"), iterations=2, num_envs=4, ppo_epochs=2, minibatches=4,
                                                  seed=0, progress=False, log_every=1)),
     }
 

@@ -25,15 +25,15 @@ _spec = importlib.util.spec_from_file_location("checkpoint_hashes", ROOT / "scri
 ch = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(ch)
 
-# Recorded on main at 3070983 (before the architecture refactor of issue 17).
+# Recorded on main at 3070983 (before the architecture refactor of issue 17); checkpoints without their config.
 RECORDED = {
     "torch 2.13.0+cpu AVX512 / AMD EPYC family 26 model 2": {
-        "circles-infogail-pomdp": "338ac145ea9ac68656707c0990a39ce84866af541bdea0f5c419d4f360f72d98",
-        "circles-paper-text-window": "444a1cd0b13c784000f86e7a1e02e2459008fab2d8aa12b3ab1a2472675a0f6c",
-        "circles-gail": "576832f47639e7b933d86a7f4e68402535d52d50b2ee402ed51b363c1db9d950",
-        "hopper-infogail-pomdp": "e355e27d4be537cab8336eb27bbfabd296236a11a1a0845a87bd3d8f1997770f",
-        "circles-bc": "3ef5632d23ef582e787a1e3fc863fa2c7ef32178eb470a6b4b5c80f64c96ee4f",
-        "hopper-expert": "8be40997c66d5243d2911eaa6ad8467c7684c620f166abda15092b30ded669af",
+        "circles-infogail-pomdp": "cabc09d1dbcb492aeef8c6b9d4f82f2c4abf02664dba34051a6866f595d80ac4",
+        "circles-paper-text-window": "da98db0e4c68d8d6ead9e8c6e15575743a6d4dc21666b3bf6553fad93690207c",
+        "circles-gail": "a200b67e295f46ddbc5b5f775532b90f139b6cc14039fc4755af991de7ed59cb",
+        "hopper-infogail-pomdp": "f1f59bba50d2d9e16f0c60cffb8d6f60f19554a1c7d1d92e76c5ed2185dea176",
+        "circles-bc": "14b0acf6a0ffdc85cf53bd02bf1ec77b50e9e4e2c2356acf3713ffe7072efcbe",
+        "hopper-expert": "679351763f262407ef518427eb86d5f61edc8e23bcc54c10059d9f29191292a9",
     },
 }
 RECORDED_METRICS = {

@@ -47,6 +47,9 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
         else:
             kwargs["metavar"] = f.name.upper()
         parser.add_argument(flag, **kwargs)
+    for old, new in getattr(cls, "RENAMED", {}).items():  # deprecated flags, still read
+        if not (fixed and new in fixed):
+            parser.add_argument("--" + old.replace("_", "-"), dest=new, default=None, help=argparse.SUPPRESS)
 
 
 def config_from_args(cls: type, args: argparse.Namespace) -> Any:
@@ -77,7 +80,7 @@ class CirclesDemosConfig:
 
 def cmd_demos(args: argparse.Namespace) -> int:
     from pomil.envs.circles import make_spec
-    from pomil.experts import record_circles_demos
+    from pomil.demos import record_circles_demos
 
     cfg: CirclesDemosConfig = config_from_args(CirclesDemosConfig, args)
     try:
@@ -123,7 +126,7 @@ class RecordDemosConfig:
 
 
 def cmd_demos_record(args: argparse.Namespace) -> int:
-    from pomil.experts import record_expert_demos
+    from pomil.demos import record_expert_demos
 
     cfg: RecordDemosConfig = config_from_args(RecordDemosConfig, args)
     if not cfg.expert or not cfg.out:
@@ -155,7 +158,7 @@ class MergeDemosConfig:
 
 def cmd_demos_merge(args: argparse.Namespace) -> int:
     from pomil.data import Demonstrations
-    from pomil.experts import merge_demos
+    from pomil.demos import merge_demos
 
     cfg: MergeDemosConfig = config_from_args(MergeDemosConfig, args)
     if not cfg.out:
@@ -190,7 +193,7 @@ def cmd_demos_minari(args: argparse.Namespace) -> int:
 
 
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
-    from pomil.experts import record_hopper_demos
+    from pomil.demos import record_hopper_demos
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
     experts = {"forward": cfg.forward_expert, "backward": cfg.backward_expert}
@@ -214,7 +217,7 @@ def cmd_experts(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
     from pomil.config import parse_kwargs
     from pomil.envs.locomotion import locomotion_kwargs
-    from pomil.eval.locomotion import rollout_locomotion
+    from pomil.eval.tasks import rollout_locomotion
     from pomil.training import write_json
 
     cfg: ExpertConfig = config_from_args(ExpertConfig, args)
@@ -284,7 +287,7 @@ def matching_demos(path: str, policies: list[tuple[str, Any]]) -> Any:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
-    from pomil.eval.rollout import evaluate_circles
+    from pomil.eval.circles import evaluate_circles
 
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
@@ -300,7 +303,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
-    from pomil.eval.locomotion import evaluate_tasks, reference_of
+    from pomil.eval.tasks import evaluate_tasks, reference_of
 
     if demos is None:
         raise PomilError(f"evaluate: a {policy.env.get('id')} policy needs --demos (the demonstrations whose "
@@ -321,7 +324,7 @@ def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
 def cmd_plot(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
     from pomil.eval.plots import figure1
-    from pomil.eval.rollout import rollout_circles
+    from pomil.eval.circles import rollout_circles
 
     panels = []
     policies = [(ckpt, TrainedPolicy.load(ckpt)) for ckpt in args.checkpoints]

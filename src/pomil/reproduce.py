@@ -35,8 +35,8 @@ from pomil.data import Demonstrations, atomic_write
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
 from pomil.errors import PomilError
 from pomil.eval.plots import figure1
-from pomil.eval.rollout import evaluate_circles
-from pomil.experts import record_circles_demos
+from pomil.eval.circles import evaluate_circles
+from pomil.demos import record_circles_demos
 from pomil.training import write_json
 
 
@@ -390,7 +390,7 @@ class HopperReproConfig(LearnerRuns):
 
 def hopper_demos(cfg: HopperReproConfig) -> Path:
     """The demonstrations file, recorded from the shipped experts if missing."""
-    from pomil.experts import record_hopper_demos
+    from pomil.demos import record_hopper_demos
 
     path = cfg.path("demos")
     if path.exists():
@@ -441,7 +441,7 @@ def hopper_table(results: dict[str, Any]) -> str:
 
 
 def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
-    from pomil.eval.locomotion import evaluate_tasks, reference_of
+    from pomil.eval.tasks import evaluate_tasks, reference_of
 
     print(f"[{name}] seed {seed}: training", flush=True)
     t0 = time.perf_counter()
@@ -457,7 +457,7 @@ def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
 
 def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     """The Hopper protocol; on any multi-task demonstrations (``pomil reproduce tasks``) when ``demos`` names them."""
-    from pomil.eval.locomotion import reference_of
+    from pomil.eval.tasks import reference_of
     from pomil.eval.plots import learning_curves
 
     t_start = time.perf_counter()

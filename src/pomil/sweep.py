@@ -94,14 +94,14 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
     result: dict[str, Any] = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "checkpoint": str(ckpt)}
     demos = Demonstrations.load(cfg.demos)
     if policy.env.get("id") == "pomil/Circles-v0":
-        from pomil.eval.rollout import evaluate_circles
+        from pomil.eval.circles import evaluate_circles
 
         metrics, roll = evaluate_circles(policy, episodes_per_code, seed=1000 + seed)
         atomic_write(Path(run_dir) / "rollouts.npz",
                      lambda f: np.savez_compressed(f, positions=roll["positions"], codes=roll["codes"]))
         result.update(kind="circles", metrics=metrics)
     elif "tasks" in demos.metadata:
-        from pomil.eval.locomotion import evaluate_tasks, reference_of
+        from pomil.eval.tasks import evaluate_tasks, reference_of
         from pomil.reproduce import _curve
 
         metrics = evaluate_tasks(policy, reference_of(demos.metadata, cfg.demos), episodes_per_code, seed=1000 + seed)
@@ -229,7 +229,7 @@ def _figure(data: dict[str, Any], path: Path) -> None:
             figure1(panels, path)
     elif kinds == {"tasks"}:
         from pomil.data import Demonstrations
-        from pomil.eval.locomotion import reference_of
+        from pomil.eval.tasks import reference_of
         from pomil.eval.plots import learning_curves
 
         demos = Demonstrations.load(data["base"]["demos"])

@@ -125,7 +125,7 @@ def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_p
 
 def test_bc_warm_start_puts_the_policy_on_the_circles(demos_path, tmp_path):
     from pomil.api import TrainedPolicy
-    from pomil.eval.rollout import evaluate_circles
+    from pomil.eval.circles import evaluate_circles
 
     none = {}
     for warm in (0, 250):
@@ -143,7 +143,7 @@ def test_mixture_warm_start_ties_codes_to_modes_and_trains_the_posterior(demos_p
     import csv
 
     from pomil.api import TrainedPolicy
-    from pomil.eval.rollout import evaluate_circles
+    from pomil.eval.circles import evaluate_circles
 
     nmi = {}
     for codes in ("random", "mixture"):

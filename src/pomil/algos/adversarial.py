@@ -116,6 +116,8 @@ class AdversarialConfig(RunConfig):
     mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)",
                               within="[0, inf)")
     ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
+    vf_coef: float = option(0.5, "weight of the value loss in the PPO loss", within="[0, inf)")
+    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update", within="(0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
     gamma: float = option(0.99, "discount", within="(0, 1]")
     gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
@@ -373,7 +375,7 @@ def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> P
         print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch has "
               f"{cfg.num_envs} minibatches of one episode", file=sys.stderr)
     lock.acquire(resume)
-    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else RunStart()
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device, AdversarialConfig) if resume else RunStart()
     start = resumed.iteration
     if start == cfg.iterations:
         print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
@@ -473,8 +475,10 @@ def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> P
                 dist = m.policy.dist(feats, b.codes)
                 new_v, _ = m.value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
                 loss, s = ppo_loss(
-                    dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v, b.values,
-                    b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, cfg.value_clip or None, 0.5, cfg.ent_coef,
+                    new_logp=dist.log_prob(b.actions).sum(-1), old_logp=b.log_probs,
+                    advantages=normalize(b.advantages, b.mask), new_values=new_v, old_values=b.values, returns=b.returns,
+                    entropy=dist.entropy().sum(-1), mask=b.mask, clip=cfg.clip, value_clip=cfg.value_clip or None,
+                    vf_coef=cfg.vf_coef, ent_coef=cfg.ent_coef,
                 )
                 if cfg.bc_weight > 0:
                     bc, bc_stats = demo_nll(m.policy, demo_feats, demo, gen, num_codes, mixture)
@@ -485,9 +489,9 @@ def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> P
                 opt["policy"].zero_grad(set_to_none=True)
                 opt["value"].zero_grad(set_to_none=True)
                 loss.backward()
-                guard.value(it, "policy gradient norm", torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5))
+                guard.value(it, "policy gradient norm", torch.nn.utils.clip_grad_norm_(m.policy.parameters(), cfg.max_grad_norm))
                 guard.value(it, "value gradient norm",  # without a shared encoder
-                            torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5))
+                            torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], cfg.max_grad_norm))
                 if it > cfg.policy_warmup_iterations:
                     opt["policy"].step()
                 opt["value"].step()
@@ -590,14 +594,14 @@ def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any], demos: Demo
     if not cfg.eval_every:
         return None
     if env_info["id"] == "pomil/Circles-v0":
-        from pomil.eval.rollout import evaluate_circles
+        from pomil.eval.circles import evaluate_circles
 
         def measure(tp: TrainedPolicy) -> dict[str, float]:
             metrics, _ = evaluate_circles(tp, cfg.eval_episodes, seed=12345)
             return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
                     "eval/modes_covered": float(metrics["modes_covered"]), "eval/none_share": metrics["overall_none_share"]}
     elif "tasks" in demos.metadata:
-        from pomil.eval.locomotion import evaluate_tasks, reference_of
+        from pomil.eval.tasks import evaluate_tasks, reference_of
 
         reference = reference_of(demos.metadata, cfg.demos)
 

@@ -175,7 +175,7 @@ def _train_bc(config: BCConfig, resume: bool, lock: RunLock) -> Path:
         print(f"pomil: note: batch_episodes {config.batch_episodes} is more than the {demos.num_episodes} demonstration "
               f"episodes; each batch draws {demos.num_episodes}", file=sys.stderr)
     lock.acquire(resume)
-    start = (resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device)
+    start = (resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device, BCConfig)
              if resume else RunStart()).iteration
     if start == config.iterations:
         print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)

@@ -4,7 +4,7 @@ environment with 1-D Box spaces (Hopper-v5 on its fast batched simulator).
 The experts whose demonstrations the imitation learners see; by default they
 observe everything (``observation_mask`` restricts that).  One readable
 loop: collect one episode in each of ``num_envs`` batched copies, GAE,
-``epochs`` passes of shuffled single-step minibatches through the clipped
+``ppo_epochs`` passes of shuffled single-step minibatches through the clipped
 PPO loss.  Observations are normalised by running statistics (kept in the
 checkpoint and applied by :class:`pomil.TrainedPolicy`); rewards are divided
 by the running standard deviation of the discounted return; the learning rate
@@ -18,7 +18,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 
@@ -58,7 +58,7 @@ class ExpertConfig(RunConfig):
                                      within="[0, inf)")
     hidden_size: int = option(64, "width of the policy's and value's hidden layers", within="[1, inf)")
     lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)", within="(0, inf)")
-    epochs: int = option(10, "PPO epochs per iteration", within="[1, inf)")
+    ppo_epochs: int = option(10, "PPO epochs per iteration (formerly 'epochs', still read)", within="[1, inf)")
     minibatches: int = option(16, "minibatches per epoch", within="[1, inf)")
     clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
     gamma: float = option(0.99, "discount", within="(0, 1]")
@@ -70,6 +70,9 @@ class ExpertConfig(RunConfig):
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
     checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)",
                                    within="[1, inf)")
+
+    RENAMED: ClassVar[dict[str, str]] = {"epochs": "ppo_epochs"}
+    """Old config keys, still read from config files and checkpoints (old -> new name)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -138,7 +141,7 @@ def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
     opt = torch.optim.Adam(params, lr=cfg.lr, eps=1e-5)
     nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
     lock.acquire(resume)
-    resumed = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else RunStart()
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device, ExpertConfig) if resume else RunStart()
     start = resumed.iteration
     if start == cfg.iterations:
         raw_env.close()
@@ -175,12 +178,15 @@ def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
         adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
         roll = roll.with_(rewards=r, advantages=adv, returns=ret)
         stats: dict[str, float] = {}
-        for _ in range(cfg.epochs):
+        for _ in range(cfg.ppo_epochs):
             for b in roll.step_batches(cfg.minibatches, gen):
                 dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts)
                 new_v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts)
-                loss, stats = ppo_loss(dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v,
-                                       b.values, b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, None, cfg.vf_coef, cfg.ent_coef)
+                loss, stats = ppo_loss(
+                    new_logp=dist.log_prob(b.actions).sum(-1), old_logp=b.log_probs,
+                    advantages=normalize(b.advantages, b.mask), new_values=new_v, old_values=b.values, returns=b.returns,
+                    entropy=dist.entropy().sum(-1), mask=b.mask, clip=cfg.clip, value_clip=None, vf_coef=cfg.vf_coef,
+                    ent_coef=cfg.ent_coef)
                 guard.value(it, "policy loss (PPO)", stats["ppo/policy_loss"])
                 guard.value(it, "value loss", stats["ppo/value_loss"])
                 opt.zero_grad(set_to_none=True)

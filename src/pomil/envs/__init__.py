@@ -63,7 +63,8 @@ def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device:
         if observation_mask is not None:
             raise ValueError("the circles environment takes no observation mask (it observes positions only)")
         return CirclesVecEnv(CirclesSpec.from_dict(env_kwargs), num_envs, device)
-    from pomil.envs.locomotion import HopperSim, TorchVecEnv
+    from pomil.envs.locomotion import HopperSim
+    from pomil.envs.vec import TorchVecEnv
 
     if env_id == HOPPER_ID:
         return TorchVecEnv(HopperSim(num_envs, env_kwargs), observation_mask, device, seed)
