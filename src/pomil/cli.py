@@ -16,7 +16,7 @@ import sys
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal, get_args, get_origin
+from typing import Any, Literal, get_args, get_origin
 
 import numpy as np
 
@@ -239,17 +239,11 @@ def cmd_experts(args: argparse.Namespace) -> int:
     return 0
 
 
-def _learners() -> dict[str, tuple[type, Callable[..., Path]]]:
-    from pomil.algos.adversarial import LEARNERS, AdversarialConfig, train_adversarial
-    from pomil.algos.bc import BCConfig, train_bc
-
-    return {"bc": (BCConfig, train_bc), **{name: (AdversarialConfig, train_adversarial) for name in LEARNERS}}
-
-
 def cmd_train(args: argparse.Namespace) -> int:
-    cls, train = _learners()[args.algo]
-    cfg = config_from_args(cls, args)
-    ckpt = train(cfg, resume=args.resume)
+    from pomil.learners import LEARNERS
+
+    learner = LEARNERS[args.algo]
+    ckpt = learner.train(config_from_args(learner.config, args), resume=args.resume)
     print(f"wrote {ckpt}")
     return 0
 
@@ -429,12 +423,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train a learner on demonstrations")
     train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
-    helps = {"bc": "behaviour cloning (feed-forward or GRU policy)", "gail": "GAIL: MLP networks, no codes, GAN discriminator",
-             "infogail": "InfoGAIL: MLP networks, latent codes, Wasserstein critic",
-             "infogail-pomdp": "InfoGAIL-POMDP (the paper's method): separate GRU belief encoders, codes, Wasserstein critic"}
-    for name, (cls, _) in _learners().items():
-        tp = train_sub.add_parser(name, help=helps[name])
-        add_config_flags(tp, cls, fixed={"learner": name} if name != "bc" else None)
+    from pomil.learners import LEARNERS
+
+    for name, learner in LEARNERS.items():
+        if not learner.command:
+            continue
+        tp = train_sub.add_parser(name, help=learner.help)
+        add_config_flags(tp, learner.config, fixed=learner.fixed or None)
         tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         tp.set_defaults(func=cmd_train)
 

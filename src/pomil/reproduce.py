@@ -34,6 +34,7 @@ from pomil.config import check_fields, option, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
 from pomil.errors import PomilError
+from pomil.learners import ADVERSARIAL, LEARNERS
 from pomil.eval.plots import figure1
 from pomil.eval.circles import evaluate_circles
 from pomil.demos import record_circles_demos
@@ -86,25 +87,17 @@ def check_runs(cfg: Any) -> None:
         raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
 
 
-# Each runner takes a reproduction config (circles or Hopper: both have demos_file,
-# bc_iterations, adversarial_iterations, adversarial_config, progress).  Every learner
-# trains with its library defaults: what `pomil train <learner> --demos D` runs.
-def _bc(policy: str) -> Callable[[Any, int, Path], Path]:
-    def run(cfg: Any, seed: int, run_dir: Path) -> Path:
-        from pomil.algos.bc import BCConfig, train_bc
-
-        iterations = {"iterations": cfg.bc_iterations} if cfg.bc_iterations else {}
-        return train_bc(BCConfig(demos=cfg.demos_file, out=str(run_dir), policy=policy, seed=seed, progress=cfg.progress,
-                                 **iterations))
-    return run
-
-
-def _adversarial(learner: str) -> Callable[[Any, int, Path], Path]:
-    def run(cfg: Any, seed: int, run_dir: Path) -> Path:
-        from pomil.algos.adversarial import train_adversarial
-
-        return train_adversarial(adversarial_config(cfg, learner, seed, run_dir))
-    return run
+# Every learner trains with its library defaults (what `pomil train <learner> --demos D`
+# runs) on a reproduction config (circles or Hopper: both have demos_file, bc_iterations,
+# adversarial_iterations, adversarial_config, progress).
+def train_learner(cfg: Any, name: str, seed: int, run_dir: Path) -> Path:
+    """Train learner ``name`` (:data:`pomil.learners.LEARNERS`) for one seed of a reproduction."""
+    learner = LEARNERS[name]
+    if name in ADVERSARIAL:
+        return learner.train(adversarial_config(cfg, name, seed, run_dir))
+    iterations = {"iterations": cfg.bc_iterations} if cfg.bc_iterations else {}
+    return learner.train(learner.make_config({"demos": cfg.demos_file, "out": str(run_dir), "seed": seed,
+                                              "progress": cfg.progress, **iterations}))
 
 
 def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: str | None = None):
@@ -121,13 +114,6 @@ def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: 
     return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the reproduction's settings")
 
 
-LEARNERS: dict[str, Callable[[Any, int, Path], Path]] = {
-    "bc-mlp": _bc("mlp"),
-    "bc-gru": _bc("gru"),
-    "gail": _adversarial("gail"),
-    "infogail": _adversarial("infogail"),
-    "infogail-pomdp": _adversarial("infogail-pomdp"),
-}
 SUMMARY_KEYS = ("mean_purity", "min_purity", "modes_covered", "nmi", "overall_none_share")
 # A seed succeeds when every code is >= 95% one mode, every mode is some code's and NMI >= 0.9.
 MODES_SUCCESS = {"min_purity": 0.95, "nmi": 0.9}
@@ -217,7 +203,7 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
 def _circles_job(cfg: CirclesReproConfig, name: str, seed: int) -> dict[str, Any]:
     print(f"[{name}] seed {seed}: training", flush=True)
     t0 = time.perf_counter()
-    ckpt = LEARNERS[name](cfg, seed, Path(cfg.runs) / name / f"seed{seed}")
+    ckpt = train_learner(cfg, name, seed, Path(cfg.runs) / name / f"seed{seed}")
     wall = time.perf_counter() - t0
     metrics, roll = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
     metrics.update(checkpoint=str(ckpt), train_seed=seed)
@@ -446,7 +432,7 @@ def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
     print(f"[{name}] seed {seed}: training", flush=True)
     t0 = time.perf_counter()
     run_dir = cfg.path("runs") / name / f"seed{seed}"
-    ckpt = LEARNERS[name](cfg, seed, run_dir)
+    ckpt = train_learner(cfg, name, seed, run_dir)
     wall = time.perf_counter() - t0
     demos_md = Demonstrations.load(cfg.demos_file).metadata
     reference = reference_of(demos_md, cfg.demos_file)

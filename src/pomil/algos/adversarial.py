@@ -60,7 +60,6 @@ from pomil.training import (
     save_checkpoint, seed_everything, write_json,
 )
 
-LEARNERS = ("gail", "infogail", "infogail-pomdp")
 LEARNER_KINDS = {  # what each learner is made of
     "gail": {"encoder": "mlp", "codes": False, "critic_objective": "gan"},
     "infogail": {"encoder": "mlp", "codes": True, "critic_objective": "wasserstein"},
