@@ -99,7 +99,8 @@ def cmd_demos(args: argparse.Namespace) -> int:
 class HopperDemosConfig:
     out: str = option("data/hopper-paper.npz", "output .npz file (written atomically)")
     episodes: int = option(200, "episodes per task", within="[1, inf)")
-    setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; "
+                                                            "standard: Hopper's own 1000 steps")
     forward_expert: str = option("data/experts/hopper-forward.pt", "forward expert checkpoint (pomil experts hopper)")
     backward_expert: str = option("data/experts/hopper-backward.pt", "backward expert checkpoint")
     observation_mask: str = option("positions-only", "what the learner observes: positions-only, or comma-separated indices")
@@ -281,13 +282,14 @@ def matching_demos(path: str, policies: list[tuple[str, Any]]) -> Any:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
+    from pomil.envs import env_family
     from pomil.eval.circles import evaluate_circles
 
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
     policy = TrainedPolicy.load(args.checkpoint)
     demos = matching_demos(args.demos, [(args.checkpoint, policy)]) if args.demos else None
-    if policy.env.get("id") != "pomil/Circles-v0":
+    if env_family(policy.env.get("id", "")).evaluation != "circles":
         return _evaluate_tasks(policy, args, demos)
     if demos is not None:
         print("pomil: note: --demos matches the checkpoint but circles evaluation does not use it", file=sys.stderr)
@@ -317,17 +319,18 @@ def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
-    from pomil.eval.plots import figure1
+    from pomil.envs import env_family
     from pomil.eval.circles import rollout_circles
+    from pomil.eval.plots import figure1
 
     panels = []
     policies = [(ckpt, TrainedPolicy.load(ckpt)) for ckpt in args.checkpoints]
     for ckpt, policy in policies:
-        if policy.env.get("id") != "pomil/Circles-v0":
+        if env_family(policy.env.get("id", "")).evaluation != "circles":
             raise PomilError(f"{ckpt}: plot draws circles policies; this one was trained on {policy.env.get('id')}")
     if args.demos:
         demos = matching_demos(args.demos, policies)
-        if demos.metadata.get("env_id") != "pomil/Circles-v0":
+        if env_family(str(demos.metadata.get("env_id"))).evaluation != "circles":
             raise PomilError(f"{args.demos}: plot draws circles demonstrations; these are of {demos.metadata.get('env_id')}")
         if demos.states is None or demos.labels is None:
             raise PomilError(f"{args.demos}: field 'states'/'labels': expected both for plotting experts")
@@ -414,7 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     ex = sub.add_parser("experts", help="train a PPO expert (MLP policy, pomil's PPO) on a task's reward")
     ex_sub = ex.add_subparsers(dest="env", required=True, metavar="ENV")
-    for name, fixed, text in (("hopper", {"demos": "", "env_id": "Hopper-v5"}, "Hopper-v5 forward or backward"),
+    from pomil.envs.locomotion import HOPPER_ID
+
+    for name, fixed, text in (("hopper", {"demos": "", "env_id": HOPPER_ID}, f"{HOPPER_ID} forward or backward"),
                               ("train", {"demos": ""}, "any Gymnasium id (--env-id) with 1-D Box spaces")):
         eh = ex_sub.add_parser(name, help=text)
         add_config_flags(eh, ExpertConfig, fixed=fixed)

@@ -32,6 +32,8 @@ import numpy as np
 from pomil.api import TrainedPolicy
 from pomil.config import check_fields, option, to_dict
 from pomil.data import Demonstrations, atomic_write
+from pomil.envs import env_family
+from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
@@ -157,8 +159,8 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
         demos.save(demos_path)
         print(f"recorded {demos_path}: {demos.num_episodes} expert episodes")
     demos = Demonstrations.load(demos_path)
-    if demos.metadata.get("env_id") != "pomil/Circles-v0":
-        raise PomilError(f"{demos_path}: field 'metadata.env_id': expected 'pomil/Circles-v0', got {demos.metadata.get('env_id')!r}")
+    if demos.metadata.get("env_id") != CIRCLES_ID:
+        raise PomilError(f"{demos_path}: field 'metadata.env_id': expected {CIRCLES_ID!r}, got {demos.metadata.get('env_id')!r}")
     results: dict[str, Any] = {
         "experiment": "circles", "config": to_dict(cfg), "seeds": cfg.seeds,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path),
@@ -347,7 +349,8 @@ METRICS = ("normalised_return", "progress", "displacement_ratio")
 
 @dataclass(frozen=True)
 class HopperReproConfig(LearnerRuns):
-    setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; "
+                                                            "standard: Hopper's own 1000 steps")
     out: str = option("", "results directory (default: runs/results/hopper[-standard]; the committed results are "
                           "results/hopper[-standard])")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
@@ -453,7 +456,7 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     tasks = list(reference["tasks"])
     out = cfg.path("out")
     results: dict[str, Any] = {
-        "experiment": "hopper" if demos.metadata.get("env_id") == "Hopper-v5" else "tasks",
+        "experiment": "hopper" if env_family(str(demos.metadata.get("env_id"))).name == "hopper" else "tasks",
         "env_id": demos.metadata.get("env_id"), "setting": demos.metadata.get("setting", cfg.setting), "config": to_dict(cfg),
         "seeds": cfg.seeds, "tasks": tasks,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path), "reference": reference,

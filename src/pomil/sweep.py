@@ -67,6 +67,7 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
     """Train one run and evaluate it; writes ``run_dir/result.json`` last (the run's "finished" mark)."""
     from pomil.api import TrainedPolicy
     from pomil.data import Demonstrations
+    from pomil.envs import evaluation_kind
 
     trainer = LEARNERS[learner]
     cfg = trainer.make_config({**values, "out": run_dir, "seed": seed, "progress": False}, source=f"sweep run {run_dir}")
@@ -81,14 +82,15 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
     policy = TrainedPolicy.load(ckpt)
     result: dict[str, Any] = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "checkpoint": str(ckpt)}
     demos = Demonstrations.load(cfg.demos)
-    if policy.env.get("id") == "pomil/Circles-v0":
+    kind = evaluation_kind(policy.env.get("id", ""), demos.metadata)
+    if kind == "circles":
         from pomil.eval.circles import evaluate_circles
 
         metrics, roll = evaluate_circles(policy, episodes_per_code, seed=1000 + seed)
         atomic_write(Path(run_dir) / "rollouts.npz",
                      lambda f: np.savez_compressed(f, positions=roll["positions"], codes=roll["codes"]))
         result.update(kind="circles", metrics=metrics)
-    elif "tasks" in demos.metadata:
+    elif kind == "tasks":
         from pomil.eval.tasks import evaluate_tasks, reference_of
         from pomil.reproduce import _curve
 

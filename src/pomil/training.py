@@ -95,6 +95,15 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     atomic_write(Path(path), lambda f: torch.save(payload, f))
 
 
+def save_run_checkpoint(path: str | Path, logger: "RunLogger", guard: "DivergenceGuard", iteration: int,
+                        payload: dict[str, Any]) -> None:
+    """A run's checkpoint of ``iteration``: the metrics flushed first, so that a resumed run's log
+    reads as one; the guard told, so that a later divergence names it."""
+    logger.flush()
+    save_checkpoint(path, {"iteration": iteration, **payload})
+    guard.saved(iteration)
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """Load a checkpoint without unpickling arbitrary objects (weights_only=True)."""
     path = Path(path)
