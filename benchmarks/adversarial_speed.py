@@ -16,9 +16,10 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from pomil.algos.adversarial import LEARNERS, train_adversarial
+from pomil.algos.adversarial import train_adversarial
+from pomil.learners import ADVERSARIAL
 from pomil.envs.circles import make_spec
-from pomil.experts import record_circles_demos
+from pomil.demos import record_circles_demos
 from pomil.reproduce import CirclesReproConfig, adversarial_config
 
 
@@ -34,7 +35,7 @@ def main() -> None:
             demos = str(Path(tmp) / "circles.npz")
             record_circles_demos(make_spec(), 400, seed=0).save(demos)
         print(f"{'learner':16s} {'env-steps/s':>12s} {'rollout':>8s} {'critic':>8s} {'posterior':>9s} {'ppo':>6s}")
-        for learner in LEARNERS:
+        for learner in ADVERSARIAL:
             out = Path(tmp) / learner
             cfg = adversarial_config(CirclesReproConfig(demos=demos, adversarial_iterations=args.iterations, progress=False),
                                      learner, 0, out)

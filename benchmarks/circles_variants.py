@@ -26,7 +26,7 @@ import numpy as np
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.api import TrainedPolicy
 from pomil.config import from_dict
-from pomil.eval.rollout import evaluate_circles
+from pomil.eval.circles import evaluate_circles
 from pomil.reproduce import CirclesReproConfig, adversarial_config
 from pomil.training import write_json
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from pomil.algos.adversarial import AdversarialConfig
 from pomil.envs.circles import make_spec
-from pomil.experts import record_circles_demos
+from pomil.demos import record_circles_demos
 
 
 def main() -> None:

@@ -119,3 +119,20 @@ def test_help_shows_the_interval():
 
     text = build_parser()._subparsers._group_actions[0].choices["train"]._subparsers._group_actions[0].choices["gail"].format_help()
     assert "in (0, 1]" in text and "in (0, inf)" in text
+
+
+def test_a_renamed_key_is_still_read_with_a_note_and_both_names_at_once_are_refused(capsys):
+    assert from_dict(ExpertConfig, {"epochs": 3}).ppo_epochs == 3
+    assert "'epochs' is now called 'ppo_epochs'" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="same setting"):
+        from_dict(ExpertConfig, {"epochs": 3, "ppo_epochs": 4})
+
+
+def test_a_saved_config_of_an_earlier_version_reads_as_this_version_writes_it():
+    from pomil.config import saved_config, to_dict
+
+    old = {k: v for k, v in to_dict(ExpertConfig(ppo_epochs=7)).items() if k != "ppo_epochs"}
+    old["epochs"] = 7
+    assert saved_config(ExpertConfig, old) == to_dict(ExpertConfig(ppo_epochs=7))
+    without_new_keys = {k: v for k, v in to_dict(AdversarialConfig()).items() if k not in ("vf_coef", "max_grad_norm")}
+    assert saved_config(AdversarialConfig, without_new_keys) == to_dict(AdversarialConfig())

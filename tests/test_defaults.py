@@ -11,7 +11,7 @@ from pomil.cli import main
 from pomil.config import from_dict
 from pomil.envs.circles import Circle, CirclesSpec
 from pomil.errors import PomilError
-from pomil.eval.rollout import evaluate_circles
+from pomil.eval.circles import evaluate_circles
 from pomil.reproduce import MODES_CASES, CirclesReproConfig, adversarial_config, modes_success
 
 

@@ -10,7 +10,7 @@ from pomil.cli import main
 from pomil.data import Demonstrations, check_demos_env
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.envs.locomotion import HOPPER_ID, hopper_kwargs
-from pomil.eval.locomotion import reference_of, rollout_locomotion
+from pomil.eval.tasks import reference_of, rollout_locomotion
 from pomil.nn import heads
 from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.rl.collect import collect
@@ -60,7 +60,7 @@ def test_collect_masks_steps_after_termination():
 
 def test_cli_expert_and_infogail_pomdp_smoke(tmp_path, capsys):
     out = tmp_path / "expert"
-    assert main(["experts", "hopper", "--task", "backward", "--iterations", "2", "--num-envs", "8", "--epochs", "2",
+    assert main(["experts", "hopper", "--task", "backward", "--iterations", "2", "--num-envs", "8", "--ppo-epochs", "2",
                  "--minibatches", "4", "--out", str(out), "--no-progress"]) == 0
     assert (out / "checkpoint.pt").exists() and (out / "evaluation.json").exists()
     run = tmp_path / "ip"

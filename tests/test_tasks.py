@@ -16,7 +16,7 @@ from pomil.envs.batch import GymSim
 from pomil.envs.locomotion import hopper_kwargs, locomotion_kwargs
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
-from pomil.experts import merge_demos, record_hopper_demos
+from pomil.demos import merge_demos, record_hopper_demos
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -152,7 +152,7 @@ def test_nan_gradient_and_reward_are_named(demos_path, tmp_path, monkeypatch):
 def test_expert_ppo_loop_is_guarded(tmp_path, monkeypatch):
     _nan_on_call(monkeypatch, expert, "ppo_loss", 3, "ppo/value_loss")
     cfg = ExpertConfig(env_id="Pendulum-v1", task="none", setting="standard", env_kwargs=("max_episode_steps=20",),
-                       out=str(tmp_path / "e"), iterations=3, num_envs=2, epochs=1, minibatches=1, hidden_size=8,
+                       out=str(tmp_path / "e"), iterations=3, num_envs=2, ppo_epochs=1, minibatches=1, hidden_size=8,
                        progress=False, checkpoint_every=1)
     with pytest.raises(DivergenceError, match=r"^iteration 3: value loss is nan .*--lr \(now 0.0003\); "
                                               r".*\(iteration 2\) is unchanged"):

@@ -1,6 +1,6 @@
 """pomil: multi-modal imitation learning in partially observable environments."""
 
-import pomil.envs  # noqa: F401  (registers pomil/Circles-v0)
+import pomil.envs  # noqa: F401  (registers the circles environment with Gymnasium)
 from pomil.api import TrainedPolicy
 from pomil.data import Demonstrations
 

@@ -16,7 +16,7 @@ import sys
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal, get_args, get_origin
+from typing import Any, Literal, get_args, get_origin
 
 import numpy as np
 
@@ -47,6 +47,9 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
         else:
             kwargs["metavar"] = f.name.upper()
         parser.add_argument(flag, **kwargs)
+    for old, new in getattr(cls, "RENAMED", {}).items():  # deprecated flags, still read
+        if not (fixed and new in fixed):
+            parser.add_argument("--" + old.replace("_", "-"), dest=new, default=None, help=argparse.SUPPRESS)
 
 
 def config_from_args(cls: type, args: argparse.Namespace) -> Any:
@@ -77,7 +80,7 @@ class CirclesDemosConfig:
 
 def cmd_demos(args: argparse.Namespace) -> int:
     from pomil.envs.circles import make_spec
-    from pomil.experts import record_circles_demos
+    from pomil.demos import record_circles_demos
 
     cfg: CirclesDemosConfig = config_from_args(CirclesDemosConfig, args)
     try:
@@ -96,7 +99,8 @@ def cmd_demos(args: argparse.Namespace) -> int:
 class HopperDemosConfig:
     out: str = option("data/hopper-paper.npz", "output .npz file (written atomically)")
     episodes: int = option(200, "episodes per task", within="[1, inf)")
-    setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; "
+                                                            "standard: Hopper's own 1000 steps")
     forward_expert: str = option("data/experts/hopper-forward.pt", "forward expert checkpoint (pomil experts hopper)")
     backward_expert: str = option("data/experts/hopper-backward.pt", "backward expert checkpoint")
     observation_mask: str = option("positions-only", "what the learner observes: positions-only, or comma-separated indices")
@@ -123,7 +127,7 @@ class RecordDemosConfig:
 
 
 def cmd_demos_record(args: argparse.Namespace) -> int:
-    from pomil.experts import record_expert_demos
+    from pomil.demos import record_expert_demos
 
     cfg: RecordDemosConfig = config_from_args(RecordDemosConfig, args)
     if not cfg.expert or not cfg.out:
@@ -155,7 +159,7 @@ class MergeDemosConfig:
 
 def cmd_demos_merge(args: argparse.Namespace) -> int:
     from pomil.data import Demonstrations
-    from pomil.experts import merge_demos
+    from pomil.demos import merge_demos
 
     cfg: MergeDemosConfig = config_from_args(MergeDemosConfig, args)
     if not cfg.out:
@@ -190,7 +194,7 @@ def cmd_demos_minari(args: argparse.Namespace) -> int:
 
 
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
-    from pomil.experts import record_hopper_demos
+    from pomil.demos import record_hopper_demos
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
     experts = {"forward": cfg.forward_expert, "backward": cfg.backward_expert}
@@ -214,7 +218,7 @@ def cmd_experts(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
     from pomil.config import parse_kwargs
     from pomil.envs.locomotion import locomotion_kwargs
-    from pomil.eval.locomotion import rollout_locomotion
+    from pomil.eval.tasks import rollout_locomotion
     from pomil.training import write_json
 
     cfg: ExpertConfig = config_from_args(ExpertConfig, args)
@@ -236,17 +240,11 @@ def cmd_experts(args: argparse.Namespace) -> int:
     return 0
 
 
-def _learners() -> dict[str, tuple[type, Callable[..., Path]]]:
-    from pomil.algos.adversarial import LEARNERS, AdversarialConfig, train_adversarial
-    from pomil.algos.bc import BCConfig, train_bc
-
-    return {"bc": (BCConfig, train_bc), **{name: (AdversarialConfig, train_adversarial) for name in LEARNERS}}
-
-
 def cmd_train(args: argparse.Namespace) -> int:
-    cls, train = _learners()[args.algo]
-    cfg = config_from_args(cls, args)
-    ckpt = train(cfg, resume=args.resume)
+    from pomil.learners import LEARNERS
+
+    learner = LEARNERS[args.algo]
+    ckpt = learner.train(config_from_args(learner.config, args), resume=args.resume)
     print(f"wrote {ckpt}")
     return 0
 
@@ -284,13 +282,14 @@ def matching_demos(path: str, policies: list[tuple[str, Any]]) -> Any:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
-    from pomil.eval.rollout import evaluate_circles
+    from pomil.envs import env_family
+    from pomil.eval.circles import evaluate_circles
 
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
     policy = TrainedPolicy.load(args.checkpoint)
     demos = matching_demos(args.demos, [(args.checkpoint, policy)]) if args.demos else None
-    if policy.env.get("id") != "pomil/Circles-v0":
+    if env_family(policy.env.get("id", "")).evaluation != "circles":
         return _evaluate_tasks(policy, args, demos)
     if demos is not None:
         print("pomil: note: --demos matches the checkpoint but circles evaluation does not use it", file=sys.stderr)
@@ -300,7 +299,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
-    from pomil.eval.locomotion import evaluate_tasks, reference_of
+    from pomil.eval.tasks import evaluate_tasks, reference_of
 
     if demos is None:
         raise PomilError(f"evaluate: a {policy.env.get('id')} policy needs --demos (the demonstrations whose "
@@ -320,17 +319,18 @@ def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
+    from pomil.envs import env_family
+    from pomil.eval.circles import rollout_circles
     from pomil.eval.plots import figure1
-    from pomil.eval.rollout import rollout_circles
 
     panels = []
     policies = [(ckpt, TrainedPolicy.load(ckpt)) for ckpt in args.checkpoints]
     for ckpt, policy in policies:
-        if policy.env.get("id") != "pomil/Circles-v0":
+        if env_family(policy.env.get("id", "")).evaluation != "circles":
             raise PomilError(f"{ckpt}: plot draws circles policies; this one was trained on {policy.env.get('id')}")
     if args.demos:
         demos = matching_demos(args.demos, policies)
-        if demos.metadata.get("env_id") != "pomil/Circles-v0":
+        if env_family(str(demos.metadata.get("env_id"))).evaluation != "circles":
             raise PomilError(f"{args.demos}: plot draws circles demonstrations; these are of {demos.metadata.get('env_id')}")
         if demos.states is None or demos.labels is None:
             raise PomilError(f"{args.demos}: field 'states'/'labels': expected both for plotting experts")
@@ -417,7 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     ex = sub.add_parser("experts", help="train a PPO expert (MLP policy, pomil's PPO) on a task's reward")
     ex_sub = ex.add_subparsers(dest="env", required=True, metavar="ENV")
-    for name, fixed, text in (("hopper", {"demos": "", "env_id": "Hopper-v5"}, "Hopper-v5 forward or backward"),
+    from pomil.envs.locomotion import HOPPER_ID
+
+    for name, fixed, text in (("hopper", {"demos": "", "env_id": HOPPER_ID}, f"{HOPPER_ID} forward or backward"),
                               ("train", {"demos": ""}, "any Gymnasium id (--env-id) with 1-D Box spaces")):
         eh = ex_sub.add_parser(name, help=text)
         add_config_flags(eh, ExpertConfig, fixed=fixed)
@@ -426,12 +428,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train a learner on demonstrations")
     train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
-    helps = {"bc": "behaviour cloning (feed-forward or GRU policy)", "gail": "GAIL: MLP networks, no codes, GAN discriminator",
-             "infogail": "InfoGAIL: MLP networks, latent codes, Wasserstein critic",
-             "infogail-pomdp": "InfoGAIL-POMDP (the paper's method): separate GRU belief encoders, codes, Wasserstein critic"}
-    for name, (cls, _) in _learners().items():
-        tp = train_sub.add_parser(name, help=helps[name])
-        add_config_flags(tp, cls, fixed={"learner": name} if name != "bc" else None)
+    from pomil.learners import LEARNERS
+
+    for name, learner in LEARNERS.items():
+        if not learner.command:
+            continue
+        tp = train_sub.add_parser(name, help=learner.help)
+        add_config_flags(tp, learner.config, fixed=learner.fixed or None)
         tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         tp.set_defaults(func=cmd_train)
 

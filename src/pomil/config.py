@@ -22,6 +22,7 @@ import typing
 from pathlib import Path
 import math
 import re
+import sys
 from typing import Any, Literal, NamedTuple, TypeVar, get_args, get_origin
 
 from pomil.errors import ConfigError, PomilError
@@ -180,6 +181,7 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
     A config class with named presets (a ``PRESETS`` table of ``{name: {field: value}}``
     and a ``preset`` field) gets the named preset's values first; the dict's own
     values override them."""
+    values = _renamed(cls, values, source)
     names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
     unknown = sorted(set(values) - set(names))
     if unknown:
@@ -202,6 +204,34 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
         raise ConfigError(f"{where}{err}") from None
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{source}: {err}") from None
+
+
+def _renamed(cls: type, values: dict[str, Any], source: str, note: bool = True) -> dict[str, Any]:
+    """``values`` with the class's old key names (its ``RENAMED`` table, old -> new) under their new
+    names, so that saved config.json files and checkpoints keep loading; a note asks to rename them."""
+    renamed: dict[str, str] = getattr(cls, "RENAMED", {})
+    old = [k for k in values if k in renamed]
+    if not old:
+        return values
+    values = dict(values)
+    for key in old:
+        if renamed[key] in values:
+            raise ConfigError(f"{source}: config keys '{key}' and '{renamed[key]}' are the same setting "
+                              f"('{key}' is its old name); keep '{renamed[key]}'")
+        values[renamed[key]] = values.pop(key)
+        if note:
+            print(f"pomil: note: {source}: config key '{key}' is now called '{renamed[key]}' (the old name is "
+                  "deprecated and still read)", file=sys.stderr)
+    return values
+
+
+def saved_config(cls: type, saved: dict[str, Any]) -> dict[str, Any]:
+    """A config dict saved by an earlier version (in a checkpoint) as this version writes it:
+    old key names renamed, and the keys added since then at their defaults (which reproduce
+    what that version computed)."""
+    values = _renamed(cls, saved, "checkpoint", note=False)
+    defaults = {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+    return {**values, **json.loads(json.dumps({k: v for k, v in defaults.items() if k not in values}))}
 
 
 def load_config_file(path: str | Path) -> dict[str, Any]:

@@ -32,11 +32,14 @@ import numpy as np
 from pomil.api import TrainedPolicy
 from pomil.config import check_fields, option, to_dict
 from pomil.data import Demonstrations, atomic_write
+from pomil.envs import env_family
+from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
 from pomil.errors import PomilError
+from pomil.learners import ADVERSARIAL, LEARNERS
 from pomil.eval.plots import figure1
-from pomil.eval.rollout import evaluate_circles
-from pomil.experts import record_circles_demos
+from pomil.eval.circles import evaluate_circles
+from pomil.demos import record_circles_demos
 from pomil.training import write_json
 
 
@@ -86,25 +89,17 @@ def check_runs(cfg: Any) -> None:
         raise ValueError(f"unknown learners {unknown}; choose from {sorted(LEARNERS)}")
 
 
-# Each runner takes a reproduction config (circles or Hopper: both have demos_file,
-# bc_iterations, adversarial_iterations, adversarial_config, progress).  Every learner
-# trains with its library defaults: what `pomil train <learner> --demos D` runs.
-def _bc(policy: str) -> Callable[[Any, int, Path], Path]:
-    def run(cfg: Any, seed: int, run_dir: Path) -> Path:
-        from pomil.algos.bc import BCConfig, train_bc
-
-        iterations = {"iterations": cfg.bc_iterations} if cfg.bc_iterations else {}
-        return train_bc(BCConfig(demos=cfg.demos_file, out=str(run_dir), policy=policy, seed=seed, progress=cfg.progress,
-                                 **iterations))
-    return run
-
-
-def _adversarial(learner: str) -> Callable[[Any, int, Path], Path]:
-    def run(cfg: Any, seed: int, run_dir: Path) -> Path:
-        from pomil.algos.adversarial import train_adversarial
-
-        return train_adversarial(adversarial_config(cfg, learner, seed, run_dir))
-    return run
+# Every learner trains with its library defaults (what `pomil train <learner> --demos D`
+# runs) on a reproduction config (circles or Hopper: both have demos_file, bc_iterations,
+# adversarial_iterations, adversarial_config, progress).
+def train_learner(cfg: Any, name: str, seed: int, run_dir: Path) -> Path:
+    """Train learner ``name`` (:data:`pomil.learners.LEARNERS`) for one seed of a reproduction."""
+    learner = LEARNERS[name]
+    if name in ADVERSARIAL:
+        return learner.train(adversarial_config(cfg, name, seed, run_dir))
+    iterations = {"iterations": cfg.bc_iterations} if cfg.bc_iterations else {}
+    return learner.train(learner.make_config({"demos": cfg.demos_file, "out": str(run_dir), "seed": seed,
+                                              "progress": cfg.progress, **iterations}))
 
 
 def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: str | None = None):
@@ -121,13 +116,6 @@ def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: 
     return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the reproduction's settings")
 
 
-LEARNERS: dict[str, Callable[[Any, int, Path], Path]] = {
-    "bc-mlp": _bc("mlp"),
-    "bc-gru": _bc("gru"),
-    "gail": _adversarial("gail"),
-    "infogail": _adversarial("infogail"),
-    "infogail-pomdp": _adversarial("infogail-pomdp"),
-}
 SUMMARY_KEYS = ("mean_purity", "min_purity", "modes_covered", "nmi", "overall_none_share")
 # A seed succeeds when every code is >= 95% one mode, every mode is some code's and NMI >= 0.9.
 MODES_SUCCESS = {"min_purity": 0.95, "nmi": 0.9}
@@ -171,8 +159,8 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
         demos.save(demos_path)
         print(f"recorded {demos_path}: {demos.num_episodes} expert episodes")
     demos = Demonstrations.load(demos_path)
-    if demos.metadata.get("env_id") != "pomil/Circles-v0":
-        raise PomilError(f"{demos_path}: field 'metadata.env_id': expected 'pomil/Circles-v0', got {demos.metadata.get('env_id')!r}")
+    if demos.metadata.get("env_id") != CIRCLES_ID:
+        raise PomilError(f"{demos_path}: field 'metadata.env_id': expected {CIRCLES_ID!r}, got {demos.metadata.get('env_id')!r}")
     results: dict[str, Any] = {
         "experiment": "circles", "config": to_dict(cfg), "seeds": cfg.seeds,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path),
@@ -217,7 +205,7 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
 def _circles_job(cfg: CirclesReproConfig, name: str, seed: int) -> dict[str, Any]:
     print(f"[{name}] seed {seed}: training", flush=True)
     t0 = time.perf_counter()
-    ckpt = LEARNERS[name](cfg, seed, Path(cfg.runs) / name / f"seed{seed}")
+    ckpt = train_learner(cfg, name, seed, Path(cfg.runs) / name / f"seed{seed}")
     wall = time.perf_counter() - t0
     metrics, roll = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
     metrics.update(checkpoint=str(ckpt), train_seed=seed)
@@ -361,7 +349,8 @@ METRICS = ("normalised_return", "progress", "displacement_ratio")
 
 @dataclass(frozen=True)
 class HopperReproConfig(LearnerRuns):
-    setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; standard: Hopper-v5's 1000 steps")
+    setting: Literal["paper", "standard"] = option("paper", "paper: 128-step episodes, no unhealthy termination; "
+                                                            "standard: Hopper's own 1000 steps")
     out: str = option("", "results directory (default: runs/results/hopper[-standard]; the committed results are "
                           "results/hopper[-standard])")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
@@ -390,7 +379,7 @@ class HopperReproConfig(LearnerRuns):
 
 def hopper_demos(cfg: HopperReproConfig) -> Path:
     """The demonstrations file, recorded from the shipped experts if missing."""
-    from pomil.experts import record_hopper_demos
+    from pomil.demos import record_hopper_demos
 
     path = cfg.path("demos")
     if path.exists():
@@ -441,12 +430,12 @@ def hopper_table(results: dict[str, Any]) -> str:
 
 
 def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
-    from pomil.eval.locomotion import evaluate_tasks, reference_of
+    from pomil.eval.tasks import evaluate_tasks, reference_of
 
     print(f"[{name}] seed {seed}: training", flush=True)
     t0 = time.perf_counter()
     run_dir = cfg.path("runs") / name / f"seed{seed}"
-    ckpt = LEARNERS[name](cfg, seed, run_dir)
+    ckpt = train_learner(cfg, name, seed, run_dir)
     wall = time.perf_counter() - t0
     demos_md = Demonstrations.load(cfg.demos_file).metadata
     reference = reference_of(demos_md, cfg.demos_file)
@@ -457,7 +446,7 @@ def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
 
 def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     """The Hopper protocol; on any multi-task demonstrations (``pomil reproduce tasks``) when ``demos`` names them."""
-    from pomil.eval.locomotion import reference_of
+    from pomil.eval.tasks import reference_of
     from pomil.eval.plots import learning_curves
 
     t_start = time.perf_counter()
@@ -467,7 +456,7 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     tasks = list(reference["tasks"])
     out = cfg.path("out")
     results: dict[str, Any] = {
-        "experiment": "hopper" if demos.metadata.get("env_id") == "Hopper-v5" else "tasks",
+        "experiment": "hopper" if env_family(str(demos.metadata.get("env_id"))).name == "hopper" else "tasks",
         "env_id": demos.metadata.get("env_id"), "setting": demos.metadata.get("setting", cfg.setting), "config": to_dict(cfg),
         "seeds": cfg.seeds, "tasks": tasks,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path), "reference": reference,

@@ -29,6 +29,8 @@ import numpy as np
 from pomil.config import check_fields, load_config_file, option, parse_kwargs
 from pomil.data import atomic_write
 from pomil.errors import PomilError
+from pomil.learners import LEARNERS
+from pomil.learners import learner as learner_named
 from pomil.training import write_json
 
 
@@ -57,16 +59,6 @@ def parse_grid(entries: list[str]) -> dict[str, list[Any]]:
     return grid
 
 
-def _learner(name: str):
-    from pomil.algos.adversarial import LEARNERS, AdversarialConfig, train_adversarial
-    from pomil.algos.bc import BCConfig, train_bc
-
-    table = {"bc": (BCConfig, train_bc), **{n: (AdversarialConfig, train_adversarial) for n in LEARNERS}}
-    if name not in table:
-        raise PomilError(f"sweep config: 'learner' must be one of {sorted(table)}, got {name!r}")
-    return table[name]
-
-
 def setting_name(values: dict[str, Any]) -> str:
     return ",".join(f"{k}={v}" for k, v in values.items()) or "base"
 
@@ -74,34 +66,32 @@ def setting_name(values: dict[str, Any]) -> str:
 def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episodes_per_code: int) -> dict[str, Any]:
     """Train one run and evaluate it; writes ``run_dir/result.json`` last (the run's "finished" mark)."""
     from pomil.api import TrainedPolicy
-    from pomil.config import from_dict
     from pomil.data import Demonstrations
+    from pomil.envs import evaluation_kind
 
-    cls, train = _learner(learner)
-    fixed = {"out": run_dir, "seed": seed, "progress": False}
-    if learner != "bc":
-        fixed["learner"] = learner
-    cfg = from_dict(cls, {**values, **fixed}, source=f"sweep run {run_dir}")
+    trainer = LEARNERS[learner]
+    cfg = trainer.make_config({**values, "out": run_dir, "seed": seed, "progress": False}, source=f"sweep run {run_dir}")
     t0 = time.perf_counter()
     # A checkpoint without result.json is a run whose worker died (Ray retries it) or that
     # was interrupted: continue it from its last checkpoint instead of starting over.
     resume = (Path(run_dir) / "checkpoint.pt").exists()
     if resume:
         print(f"{run_dir}: resuming from its checkpoint", file=sys.stderr, flush=True)
-    ckpt = train(cfg, resume=resume)
+    ckpt = trainer.train(cfg, resume=resume)
     wall = time.perf_counter() - t0
     policy = TrainedPolicy.load(ckpt)
     result: dict[str, Any] = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "checkpoint": str(ckpt)}
     demos = Demonstrations.load(cfg.demos)
-    if policy.env.get("id") == "pomil/Circles-v0":
-        from pomil.eval.rollout import evaluate_circles
+    kind = evaluation_kind(policy.env.get("id", ""), demos.metadata)
+    if kind == "circles":
+        from pomil.eval.circles import evaluate_circles
 
         metrics, roll = evaluate_circles(policy, episodes_per_code, seed=1000 + seed)
         atomic_write(Path(run_dir) / "rollouts.npz",
                      lambda f: np.savez_compressed(f, positions=roll["positions"], codes=roll["codes"]))
         result.update(kind="circles", metrics=metrics)
-    elif "tasks" in demos.metadata:
-        from pomil.eval.locomotion import evaluate_tasks, reference_of
+    elif kind == "tasks":
+        from pomil.eval.tasks import evaluate_tasks, reference_of
         from pomil.reproduce import _curve
 
         metrics = evaluate_tasks(policy, reference_of(demos.metadata, cfg.demos), episodes_per_code, seed=1000 + seed)
@@ -117,7 +107,7 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
 
     base = load_config_file(config_path)
     learner = str(base.pop("learner", "infogail-pomdp"))
-    cls, _ = _learner(learner)
+    trainer = learner_named(learner, f"{config_path}: 'learner'")
     for key in ("out", "seed"):
         if key in base:
             raise PomilError(f"{config_path}: '{key}' is set by the sweep for each run; remove it")
@@ -125,11 +115,9 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
         raise PomilError(f"{config_path}: 'demos' is required (the demonstrations every run imitates)")
     base["demos"] = str(Path(base["demos"]).resolve())
     grid = parse_grid(grid_entries)
-    from pomil.config import from_dict
-
     settings = [dict(zip(grid, combo)) for combo in itertools.product(*grid.values())] or [{}]
     for s in settings:  # every setting must make a valid config before anything runs
-        from_dict(cls, {**base, **s, **({"learner": learner} if learner != "bc" else {})}, source=f"{config_path} + {setting_name(s)}")
+        trainer.make_config({**base, **s}, source=f"{config_path} + {setting_name(s)}")
     out = Path(cfg.out).resolve()
     t_start = time.perf_counter()
     jobs, names, finished = [], [], {}
@@ -229,7 +217,7 @@ def _figure(data: dict[str, Any], path: Path) -> None:
             figure1(panels, path)
     elif kinds == {"tasks"}:
         from pomil.data import Demonstrations
-        from pomil.eval.locomotion import reference_of
+        from pomil.eval.tasks import reference_of
         from pomil.eval.plots import learning_curves
 
         demos = Demonstrations.load(data["base"]["demos"])

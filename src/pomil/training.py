@@ -29,6 +29,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
+from pomil.config import saved_config
 from pomil.data import atomic_write
 from pomil.errors import DivergenceError, PomilError, RunBusyError
 
@@ -94,6 +95,15 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     atomic_write(Path(path), lambda f: torch.save(payload, f))
 
 
+def save_run_checkpoint(path: str | Path, logger: "RunLogger", guard: "DivergenceGuard", iteration: int,
+                        payload: dict[str, Any]) -> None:
+    """A run's checkpoint of ``iteration``: the metrics flushed first, so that a resumed run's log
+    reads as one; the guard told, so that a later divergence names it."""
+    logger.flush()
+    save_checkpoint(path, {"iteration": iteration, **payload})
+    guard.saved(iteration)
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """Load a checkpoint without unpickling arbitrary objects (weights_only=True)."""
     path = Path(path)
@@ -124,11 +134,17 @@ RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "lo
                                "lr", "lr_value", "lr_critic", "lr_posterior", "bc_init_lr"})
 
 
-def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str | Path) -> None:
-    """Refuse to resume a run under a config that would change its results."""
+def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str | Path,
+                        config_class: type | None = None) -> None:
+    """Refuse to resume a run under a config that would change its results.
+
+    With ``config_class``, a checkpoint of an earlier version has its config read as this
+    version writes it (:func:`pomil.config.saved_config`: renamed keys, new keys at their defaults)."""
     saved = ckpt.get("config", {})
     if not isinstance(saved, dict):
         raise TypeError("config")
+    if config_class is not None:
+        saved = saved_config(config_class, saved)
     changed = sorted(k for k in set(config) | set(saved) if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
     if changed:
         raise PomilError(f"{path}: cannot resume with a different config (changed: {', '.join(changed)})")
@@ -144,7 +160,7 @@ class RunStart:
 
 def resume_run(
     ckpt_path: Path, config: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, Any],
-    generator: torch.Generator, device: torch.device | str = "cpu",
+    generator: torch.Generator, device: torch.device | str = "cpu", config_class: type | None = None,
 ) -> RunStart:
     """Restore networks, optimisers and RNGs from a run's checkpoint; returns its iteration
     and environment-step count.
@@ -158,7 +174,7 @@ def resume_run(
         raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {ckpt_path.parent})")
     ckpt = load_checkpoint(ckpt_path, device)
     try:
-        check_resume_config(ckpt, config, ckpt_path)
+        check_resume_config(ckpt, config, ckpt_path, config_class)
     except (TypeError, ValueError, RuntimeError, AttributeError):
         raise PomilError(f"{ckpt_path}: cannot resume from this checkpoint (its 'config' is damaged)") from None
     done = ckpt.get("iteration")

@@ -125,7 +125,7 @@ def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_p
 
 def test_bc_warm_start_puts_the_policy_on_the_circles(demos_path, tmp_path):
     from pomil.api import TrainedPolicy
-    from pomil.eval.rollout import evaluate_circles
+    from pomil.eval.circles import evaluate_circles
 
     none = {}
     for warm in (0, 250):
@@ -143,7 +143,7 @@ def test_mixture_warm_start_ties_codes_to_modes_and_trains_the_posterior(demos_p
     import csv
 
     from pomil.api import TrainedPolicy
-    from pomil.eval.rollout import evaluate_circles
+    from pomil.eval.circles import evaluate_circles
 
     nmi = {}
     for codes in ("random", "mixture"):
@@ -257,7 +257,7 @@ def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
         g = torch.Generator().manual_seed(1)
         if joint:
             from pomil.algos.bc import demo_batch
-            demo, demo_prev = demo_batch(demos, prev, 8, g)
+            demo, demo_prev, _ = demo_batch(demos, prev, 8, g)
             feats, demo_feats = policy_and_demo_features(policy, b, demo, demo_prev)
             bc, _ = demo_nll(policy, demo_feats, demo, g, 2, mixture)
         else:

@@ -5,7 +5,7 @@ import torch
 
 from pomil.algos.bc import BCConfig, train_bc
 from pomil.api import TrainedPolicy
-from pomil.eval.rollout import evaluate_circles
+from pomil.eval.circles import evaluate_circles
 from pomil.training import load_checkpoint
 
 

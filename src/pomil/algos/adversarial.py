@@ -35,9 +35,10 @@ import copy
 import math
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Literal
+from typing import Any, Callable, ClassVar, Iterator, Literal
 
 import torch
 import torch.nn.functional as F
@@ -46,7 +47,7 @@ from pomil.algos.bc import MixtureAssignment, bc_step, demo_batch, demo_nll, fir
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs, to_dict
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
-from pomil.envs import executed_actions_fn, make_vec_env
+from pomil.envs import default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import ConfigError, PomilError
 from pomil.nn import heads
@@ -58,10 +59,9 @@ from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import (
     DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
-    save_checkpoint, seed_everything, write_json,
+    save_run_checkpoint, seed_everything, write_json,
 )
 
-LEARNERS = ("gail", "infogail", "infogail-pomdp")
 LEARNER_KINDS = {  # what each learner is made of
     "gail": {"encoder": "mlp", "codes": False, "critic_objective": "gan"},
     "infogail": {"encoder": "mlp", "codes": True, "critic_objective": "wasserstein"},
@@ -120,6 +120,8 @@ class AdversarialConfig(RunConfig):
     mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)",
                               within="[0, inf)")
     ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
+    vf_coef: float = option(0.5, "weight of the value loss in the PPO loss", within="[0, inf)")
+    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update", within="(0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
     gamma: float = option(0.99, "discount", within="(0, 1]")
     gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
@@ -192,26 +194,82 @@ def side_by_side(unroll: Callable[..., torch.Tensor], first: tuple[torch.Tensor,
     return out[:, :first[0].shape[1]], out[:, first[0].shape[1]:]
 
 
-# -------------------------------------------------------------- critic, posterior
-def _expert_batch(expert: PaddedEpisodes, actions: torch.Tensor, prev: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):
-    """(obs, prev_actions, actions, starts, mask) of expert episodes or windows.
+# ------------------------------------------------------------------ batches
+class BatchSampler:
+    """Where every update's batches come from: the one place that knows ``update_mode``.
 
-    ``actions`` (T, E, act_dim) are the demonstrations' actions as the critic
-    sees them (noised or not) and ``prev`` = shift_actions(actions).
+    ``sequence``: whole episodes from their stored initial hidden state, exactly the
+    computation of the rollout.  ``window``: the paper's bootstrapped random updates,
+    random windows of ``window_length`` steps from a zero state.  The critic, the
+    posterior and PPO all draw their batches here, with the run's generator.
     """
-    T, E = expert.mask.shape
-    if cfg.update_mode == "window":
-        t_idx, e = window_index(T, E, cfg.window_length, cfg.critic_batch, gen)
-    else:
-        e = torch.randint(E, (cfg.critic_batch,), generator=gen)
-        t_idx = torch.arange(T).unsqueeze(1).expand(-1, len(e))
-    dev = expert.mask.device
-    t_idx, e = t_idx.to(dev), e.to(dev)
-    ei = e.unsqueeze(0).expand_as(t_idx)
-    mask = expert.mask[t_idx, ei]
-    return expert.observations[t_idx, ei], prev[t_idx, ei], actions[t_idx, ei], first_step_starts(mask), mask
+
+    def __init__(self, mode: Literal["sequence", "window"], window_length: int) -> None:
+        self.windows = mode == "window"
+        self.window_length = window_length
+
+    def expert(self, expert: PaddedEpisodes, actions: torch.Tensor, prev: torch.Tensor, count: int,
+               gen: torch.Generator) -> tuple[torch.Tensor, ...]:
+        """(obs, prev_actions, actions, starts, mask) of ``count`` expert episodes or windows.
+
+        ``actions`` (T, E, act_dim) are the demonstrations' actions as the critic
+        sees them (noised or not) and ``prev`` = shift_actions(actions)."""
+        T, E = expert.mask.shape
+        if self.windows:
+            t_idx, e = window_index(T, E, self.window_length, count, gen)
+        else:
+            e = torch.randint(E, (count,), generator=gen)
+            t_idx = torch.arange(T).unsqueeze(1).expand(-1, len(e))
+        dev = expert.mask.device
+        t_idx, e = t_idx.to(dev), e.to(dev)
+        ei = e.unsqueeze(0).expand_as(t_idx)
+        mask = expert.mask[t_idx, ei]
+        return expert.observations[t_idx, ei], prev[t_idx, ei], actions[t_idx, ei], first_step_starts(mask), mask
+
+    def policy(self, roll: Rollout, count: int, gen: torch.Generator) -> Rollout:
+        """``count`` random episodes or windows of the rollout (the critic's policy side)."""
+        if self.windows:
+            return roll.windows(self.window_length, count, gen)
+        return roll.columns(torch.randint(roll.num_envs, (count,), generator=gen).to(roll.starts.device))
+
+    def posterior(self, roll: Rollout, code_steps: torch.Tensor,
+                  gen: torch.Generator) -> Iterator[tuple[torch.Tensor, Rollout]]:
+        """(code per step, batch): the whole rollout, or as many random windows as it has windows' worth of steps."""
+        if not self.windows:
+            yield code_steps, roll
+            return
+        count = max(1, roll.num_steps * roll.num_envs // self.window_length)
+        t_idx, env = window_index(roll.num_steps, roll.num_envs, self.window_length, count, gen)
+        dev = roll.starts.device
+        t_idx, env = t_idx.to(dev), env.to(dev)
+        batch = roll._gather(t_idx, env, roll.h0_policy[env] * 0, roll.h0_value[env] * 0, zero_first=True)
+        yield code_steps[t_idx, env.unsqueeze(0).expand_as(t_idx)], batch
+
+    def minibatches(self, roll: Rollout, count: int, gen: torch.Generator) -> Iterator[Rollout]:
+        """One PPO epoch's minibatches."""
+        if self.windows:
+            return roll.window_batches(count, self.window_length, gen)
+        return roll.sequence_batches(count, gen)
+
+    def behaviour(self, policy: GaussianPolicy, value: BeliefHead) -> Callable[[Rollout], Rollout]:
+        """What makes a minibatch's "old" log-probs and values.  Windows start from a zero
+        state, unlike the rollout: their old log-probs and values are recomputed under the
+        same conditioning by a frozen copy of the networks, so that the PPO ratio starts at
+        exactly 1.  Whole sequences keep the rollout's."""
+        if not self.windows:
+            return lambda b: b
+        frozen = (copy.deepcopy(policy), copy.deepcopy(value))
+        return lambda b: _window_behaviour(b, *frozen)
 
 
+@torch.no_grad()
+def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> Rollout:
+    dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts, codes=b.codes)
+    v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
+    return b.with_(log_probs=dist.log_prob(b.actions).sum(-1), values=v)
+
+
+# -------------------------------------------------------------- critic, posterior
 def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy, execute: Callable[[torch.Tensor], torch.Tensor],
                          gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """(actions, prev_actions) of the demonstrations with the policy's current action noise added.
@@ -226,12 +284,6 @@ def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy, execute
         noise = torch.randn(expert.actions.shape, generator=gen).to(expert.actions.device)
         actions = execute(expert.actions + policy.log_std.exp() * noise)
     return actions, shift_actions(actions)
-
-
-def _policy_batch(roll: Rollout, cfg: AdversarialConfig, count: int, gen: torch.Generator) -> Rollout:
-    if cfg.update_mode == "window":
-        return roll.windows(cfg.window_length, count, gen)
-    return roll.columns(torch.randint(roll.num_envs, (count,), generator=gen).to(roll.starts.device))
 
 
 def critic_loss(
@@ -327,12 +379,173 @@ def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
         return 0
     if cfg.num_codes > 0:
         return cfg.num_codes
-    circles = (demos.metadata.get("env_kwargs") or {}).get("circles")
-    if circles:
-        return len(circles)
+    suggested = default_num_codes(demos.metadata)  # circles: one per circle
+    if suggested:
+        return suggested
     if demos.labels is not None:  # at least 2: a single code carries no information
         return max(2, int(len(set(demos.labels.tolist()))))
     return 2
+
+
+@dataclass
+class AdversarialRun:
+    """What every phase of an iteration reads: the networks, their optimisers, the
+    demonstrations (with executed actions), the batch sampler and the run's generator."""
+
+    cfg: AdversarialConfig
+    m: Modules
+    opt: dict[str, torch.optim.Optimizer]
+    gen: torch.Generator
+    sampler: BatchSampler
+    expert: PaddedEpisodes
+    expert_prev: torch.Tensor
+    execute: Callable[[torch.Tensor], torch.Tensor]
+    num_codes: int
+    guard: DivergenceGuard | None = None
+    assignment: MixtureAssignment | None = None  # the BC term's code per demonstration episode (whole-set balance)
+
+    @property
+    def objective(self) -> str:
+        return LEARNER_KINDS[self.cfg.learner]["critic_objective"]
+
+    @property
+    def mixture(self) -> bool:
+        """The warm start's and the BC term's likelihood: the codes' mixture (else random codes)."""
+        return self.cfg.bc_init_codes == "mixture" and self.num_codes > 0
+
+    def check(self, it: int, quantity: str, x: float | torch.Tensor) -> None:
+        if self.guard is not None:
+            self.guard.value(it, quantity, x)
+
+    def step(self, it: int, name: str, loss: torch.Tensor, params: Callable[[], Any]) -> None:
+        """One optimiser step of ``opt[name]`` on ``loss``, its gradients checked first."""
+        self.opt[name].zero_grad(set_to_none=True)
+        loss.backward()
+        if self.guard is not None:
+            self.guard.grads(it, name, params())
+        self.opt[name].step()
+
+
+def build_optimizers(cfg: AdversarialConfig, m: Modules) -> dict[str, torch.optim.Optimizer]:
+    opt = {
+        "policy": torch.optim.Adam(m.policy.parameters(), lr=cfg.lr),
+        "value": torch.optim.Adam(m.value.mlp.parameters() if cfg.shared_value_encoder else m.value.parameters(),
+                                  lr=cfg.lr_value),
+        "critic": (torch.optim.RMSprop(m.critic.parameters(), lr=cfg.lr_critic) if cfg.critic_optimizer == "rmsprop"
+                   else torch.optim.Adam(m.critic.parameters(), lr=cfg.lr_critic, betas=(0.5, 0.9))),
+    }
+    if m.posterior is not None:
+        opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
+    return opt
+
+
+def update_critic(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, float]:
+    """``critic_steps`` updates on expert vs. policy batches; weights clipped after each (Wasserstein, weight_clip)."""
+    cfg, m = run.cfg, run.m
+    for _ in range(cfg.critic_steps):
+        e_act, e_prev = (noisy_expert_actions(run.expert, m.policy, run.execute, run.gen) if cfg.expert_action_noise
+                         else (run.expert.actions, run.expert_prev))
+        expert = run.sampler.expert(run.expert, e_act, e_prev, cfg.critic_batch, run.gen)
+        loss, s = critic_loss(m.critic, expert, run.sampler.policy(roll, cfg.critic_batch, run.gen),
+                              run.objective, cfg.gradient_penalty)
+        run.check(it, "critic loss", s["critic/loss"])
+        run.step(it, "critic", loss, m.critic.parameters)
+        if cfg.weight_clip > 0 and run.objective == "wasserstein":
+            with torch.no_grad():
+                for p in m.critic.parameters():
+                    p.clamp_(-cfg.weight_clip, cfg.weight_clip)
+    return s
+
+
+def update_posterior(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor, it: int = 0) -> dict[str, float]:
+    """``posterior_steps`` passes of the code's cross-entropy over the rollout ({} without codes)."""
+    if run.m.posterior is None:
+        return {}
+    code_steps = code_idx.unsqueeze(0).expand(roll.num_steps, -1)
+    for _ in range(run.cfg.posterior_steps):
+        for batch_idx, batch in run.sampler.posterior(roll, code_steps, run.gen):
+            loss, s = posterior_loss(run.m.posterior, batch, batch_idx)
+            run.check(it, "posterior loss", s["posterior/loss"])
+            run.step(it, "posterior", loss, run.m.posterior.parameters)
+    return s
+
+
+def with_rewards(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor, next_values: torch.Tensor,
+                 it: int = 0) -> tuple[Rollout, dict[str, float]]:
+    """The rollout with the imitation rewards (:func:`rewards`), GAE advantages and returns."""
+    r, s = rewards(run.m, roll, code_idx, run.cfg, run.objective)
+    run.check(it, "reward", r)
+    adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, run.cfg.gamma, run.cfg.gae_lambda)
+    return roll.with_(rewards=r, advantages=adv, returns=ret), s
+
+
+def update_policy(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, float]:
+    """``ppo_epochs`` epochs of PPO minibatches on policy and value (the policy waits out
+    ``policy_warmup_iterations``)."""
+    behaviour = run.sampler.behaviour(run.m.policy, run.m.value)
+    for _ in range(run.cfg.ppo_epochs):
+        for b in run.sampler.minibatches(roll, run.cfg.minibatches, run.gen):
+            s = ppo_step(run, behaviour(b), it)
+    return s
+
+
+def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
+    """One PPO update of policy and value on minibatch ``b``, with the BC term on demonstrations (bc_weight)."""
+    cfg, m = run.cfg, run.m
+    if cfg.bc_weight > 0:  # the BC term's demonstrations go through the policy's encoder with the minibatch
+        demo, demo_prev, demo_idx = demo_batch(run.expert, run.expert_prev, cfg.bc_init_batch, run.gen)
+        feats, demo_feats = policy_and_demo_features(m.policy, b, demo, demo_prev)
+    else:
+        feats, _ = m.policy.features(b.observations, b.prev_actions, b.h0_policy, b.starts)
+    dist = m.policy.dist(feats, b.codes)
+    new_v, _ = m.value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
+    loss, s = ppo_loss(
+        new_logp=dist.log_prob(b.actions).sum(-1), old_logp=b.log_probs,
+        advantages=normalize(b.advantages, b.mask), new_values=new_v, old_values=b.values, returns=b.returns,
+        entropy=dist.entropy().sum(-1), mask=b.mask, clip=cfg.clip, value_clip=cfg.value_clip or None,
+        vf_coef=cfg.vf_coef, ent_coef=cfg.ent_coef,
+    )
+    if cfg.bc_weight > 0:
+        resp = run.assignment.update(m.policy)[:, demo_idx] if run.assignment is not None else None
+        bc, bc_stats = demo_nll(m.policy, demo_feats, demo, run.gen, run.num_codes, run.mixture, resp)
+        loss = loss + cfg.bc_weight * bc
+        s["ppo/bc_nll"] = bc_stats["bc/nll"]
+    run.check(it, "policy loss (PPO)", s["ppo/policy_loss"])
+    run.check(it, "value loss", s["ppo/value_loss"])
+    run.opt["policy"].zero_grad(set_to_none=True)
+    run.opt["value"].zero_grad(set_to_none=True)
+    loss.backward()
+    run.check(it, "policy gradient norm", torch.nn.utils.clip_grad_norm_(m.policy.parameters(), cfg.max_grad_norm))
+    run.check(it, "value gradient norm",  # without a shared encoder
+              torch.nn.utils.clip_grad_norm_(run.opt["value"].param_groups[0]["params"], cfg.max_grad_norm))
+    if it > cfg.policy_warmup_iterations:
+        run.opt["policy"].step()
+    run.opt["value"].step()
+    return s
+
+
+class PhaseClock:
+    """Wall time spent in each phase of the loop, summed over iterations (``with clock("critic"): ...``)."""
+
+    def __init__(self, *phases: str) -> None:
+        self.spent = dict.fromkeys(phases, 0.0)
+        self.t_start = time.perf_counter()
+
+    @contextmanager
+    def __call__(self, phase: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.spent[phase] += time.perf_counter() - t0
+
+    def rates(self, env_steps: int) -> dict[str, float]:
+        elapsed = time.perf_counter() - self.t_start
+        return {"time/elapsed_s": elapsed, "time/env_steps_per_s": env_steps / max(elapsed, 1e-9)}
+
+    def shares(self) -> dict[str, float]:
+        total = max(sum(self.spent.values()), 1e-9)
+        return {f"time/share_{k}": v / total for k, v in self.spent.items()}
 
 
 def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
@@ -349,178 +562,104 @@ def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
             "reward": lr_hint(cfg, *rewards), "warm-start": lr_hint(cfg, "bc_init_lr")}
 
 
-def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> Path:
-    if not cfg.demos:
-        raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
-    run_dir = Path(cfg.out)
-    ckpt_path = run_dir / "checkpoint.pt"
-    device = resolve_device(cfg.device)
-    demos, env_id, env_kwargs = load_training_demos(cfg.demos, parse_kwargs(cfg.env_kwargs), parse_mask(cfg.observation_mask))
+def _environment(cfg: AdversarialConfig, device: torch.device):
+    """(demonstrations, env info, evaluator, batched env, executed-actions function) of a run."""
+    demos, env_id, env_kwargs = load_training_demos(cfg.demos, parse_kwargs(cfg.env_kwargs),
+                                                    parse_mask(cfg.observation_mask))
     env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
     evaluate = make_evaluator(cfg, env_info, demos)
     try:
         env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device, env_info["observation_mask"], seed=cfg.seed)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: {err}") from None
-    execute = executed_actions_fn(env_id, env_kwargs)
+    return demos, env_info, evaluate, env, executed_actions_fn(env_id, env_kwargs)
+
+
+def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> Path:
+    if not cfg.demos:
+        raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
+    run_dir, device = Path(cfg.out), resolve_device(cfg.device)
+    ckpt_path = run_dir / "checkpoint.pt"
+    demos, env_info, evaluate, env, execute = _environment(cfg, device)
     num_codes = resolve_num_codes(cfg, demos)
-    objective = LEARNER_KINDS[cfg.learner]["critic_objective"]
     gen = seed_everything(cfg.seed)
     m, arch = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, device)
-    opt = {
-        "policy": torch.optim.Adam(m.policy.parameters(), lr=cfg.lr),
-        "value": torch.optim.Adam(m.value.mlp.parameters() if cfg.shared_value_encoder else m.value.parameters(), lr=cfg.lr_value),
-        "critic": (torch.optim.RMSprop(m.critic.parameters(), lr=cfg.lr_critic) if cfg.critic_optimizer == "rmsprop"
-                   else torch.optim.Adam(m.critic.parameters(), lr=cfg.lr_critic, betas=(0.5, 0.9))),
-    }
-    if m.posterior is not None:
-        opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
+    opt = build_optimizers(cfg, m)
     nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
     if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
         print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch has "
               f"{cfg.num_envs} minibatches of one episode", file=sys.stderr)
     lock.acquire(resume)
-    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device) if resume else RunStart()
-    start = resumed.iteration
-    if start == cfg.iterations:
-        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device, AdversarialConfig) if resume else RunStart()
+    if resumed.iteration == cfg.iterations:
+        print(f"pomil: note: {ckpt_path} is already at iteration {resumed.iteration}: nothing to do", file=sys.stderr)
         return ckpt_path
     write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
-    guard = DivergenceGuard(ckpt_path, divergence_hints(cfg), start)
     expert = demos.padded(device)
     expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
-    expert_prev = shift_actions(expert.actions)
-    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0  # the warm start's and the BC term's likelihood
-    init_stats = (bc_warm_start(m, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
-                  if start == 0 and cfg.bc_init_iterations > 0 else {})
-    assignment = mixture_assignment(cfg, expert, expert_prev, mixture)  # the BC term's
-    logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=cfg.learner,
-                       key_stats=("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein"))
-    guard.on_stop = logger.close
-
-    def checkpoint(iteration: int) -> None:
-        logger.flush()
-        save_checkpoint(ckpt_path, {
-            "algo": cfg.learner, "iteration": iteration, "config": to_dict(cfg),
-            "env": env_info, "policy_arch": arch.to_dict(), "policy": m.policy.state_dict(),
-            "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
-            "optimizers": {k: o.state_dict() for k, o in opt.items()}, "rng": rng_state(gen),
-            "env_steps": steps_done,
-        })
-        guard.saved(iteration)
-
-    if start == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
+    run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
+                         shift_actions(expert.actions), execute, num_codes,
+                         DivergenceGuard(ckpt_path, divergence_hints(cfg), resumed.iteration))
+    init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard)
+                  if resumed.iteration == 0 and cfg.bc_init_iterations > 0 else {})
+    run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
+    logger = RunLogger(run_dir, cfg.iterations, resumed.iteration, cfg.progress, desc=cfg.learner, key_stats=KEY_STATS)
+    run.guard.on_stop = logger.close
+    if resumed.iteration == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
         if evaluate is not None:
             init_stats.update(evaluate(m.policy), **{"eval/env_steps": 0.0})
         if init_stats:
             logger.log(0, init_stats)
-    timers = {"rollout": 0.0, "critic": 0.0, "posterior": 0.0, "ppo": 0.0}
+    _loop(run, env, evaluate, logger, resumed, device,
+          lambda it, steps: _checkpoint(run, ckpt_path, logger, env_info, arch, nets, it, steps))
+    return ckpt_path
+
+
+KEY_STATS = ("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein")
+
+
+def _loop(run: AdversarialRun, env: Any, evaluate: Callable[[GaussianPolicy], dict[str, float]] | None,
+          logger: RunLogger, resumed: RunStart, device: torch.device, checkpoint: Callable[[int, int], None]) -> None:
+    """The iterations: collect, critic, posterior, rewards, policy, then evaluation, logging and checkpoints."""
+    cfg, m = run.cfg, run.m
+    clock = PhaseClock("rollout", "critic", "posterior", "ppo")
     steps_done = resumed.env_steps  # eval/env_steps counts the whole run, across resumes
-    t_start = time.perf_counter()
-    for it in range(start + 1, cfg.iterations + 1):
-        stats: dict[str, float] = {}
-        # 1. rollout
-        t0 = time.perf_counter()
-        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes, execute, gen, device, cfg.rollout_threads)
-        stats["env/true_return"] = env_rewards.sum(0).mean().item()
-        guard.value(it, "environment reward", stats["env/true_return"])
-        steps_done += roll.num_steps * roll.num_envs
-        t1 = time.perf_counter()
-        # 2. critic
-        for _ in range(cfg.critic_steps):
-            e_act, e_prev = (noisy_expert_actions(expert, m.policy, execute, gen) if cfg.expert_action_noise
-                             else (expert.actions, expert_prev))
-            loss, s = critic_loss(m.critic, _expert_batch(expert, e_act, e_prev, cfg, gen), _policy_batch(roll, cfg, cfg.critic_batch, gen),
-                                  objective, cfg.gradient_penalty)
-            guard.value(it, "critic loss", s["critic/loss"])
-            opt["critic"].zero_grad(set_to_none=True)
-            loss.backward()
-            guard.grads(it, "critic", m.critic.parameters())
-            opt["critic"].step()
-            if cfg.weight_clip > 0 and objective == "wasserstein":
-                with torch.no_grad():
-                    for p in m.critic.parameters():
-                        p.clamp_(-cfg.weight_clip, cfg.weight_clip)
-        stats.update(s)
-        t2 = time.perf_counter()
-        # 3. posterior
-        if m.posterior is not None:
-            code_steps = code_idx.unsqueeze(0).expand(roll.num_steps, -1)
-            for _ in range(cfg.posterior_steps):
-                for batch_idx, batch in _posterior_batches(roll, code_steps, cfg, gen):
-                    loss, s = posterior_loss(m.posterior, batch, batch_idx)
-                    guard.value(it, "posterior loss", s["posterior/loss"])
-                    opt["posterior"].zero_grad(set_to_none=True)
-                    loss.backward()
-                    guard.grads(it, "posterior", m.posterior.parameters())
-                    opt["posterior"].step()
+    for it in range(resumed.iteration + 1, cfg.iterations + 1):
+        with clock("rollout"):
+            roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
+                                                               run.gen, device, cfg.rollout_threads)
+            stats = {"env/true_return": env_rewards.sum(0).mean().item()}
+            run.check(it, "environment reward", stats["env/true_return"])
+            steps_done += roll.num_steps * roll.num_envs
+        with clock("critic"):
+            stats.update(update_critic(run, roll, it))
+        with clock("posterior"):
+            stats.update(update_posterior(run, roll, code_idx, it))
+        with clock("ppo"):
+            roll, s = with_rewards(run, roll, code_idx, next_values, it)
             stats.update(s)
-        t3 = time.perf_counter()
-        # 4. rewards and advantages
-        r, s = rewards(m, roll, code_idx, cfg, objective)
-        guard.value(it, "reward", r)
-        stats.update(s)
-        adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
-        roll = roll.with_(rewards=r, advantages=adv, returns=ret)
-        # 5. PPO
-        # Windows start from a zero state, unlike the rollout: their "old" log-probs
-        # and values are recomputed under the same conditioning by a frozen copy
-        # of the networks, so that the PPO ratio starts at exactly 1.
-        frozen = (copy.deepcopy(m.policy), copy.deepcopy(m.value)) if cfg.update_mode == "window" else None
-        for _ in range(cfg.ppo_epochs):
-            batches = (roll.window_batches(cfg.minibatches, cfg.window_length, gen) if cfg.update_mode == "window"
-                       else roll.sequence_batches(cfg.minibatches, gen))
-            for b in batches:
-                if frozen is not None:
-                    b = _window_behaviour(b, *frozen)
-                if cfg.bc_weight > 0:  # the BC term's demonstrations go through the policy's encoder with the minibatch
-                    demo, demo_prev, demo_idx = demo_batch(expert, expert_prev, cfg.bc_init_batch, gen)
-                    feats, demo_feats = policy_and_demo_features(m.policy, b, demo, demo_prev)
-                else:
-                    feats, _ = m.policy.features(b.observations, b.prev_actions, b.h0_policy, b.starts)
-                dist = m.policy.dist(feats, b.codes)
-                new_v, _ = m.value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
-                loss, s = ppo_loss(
-                    dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v, b.values,
-                    b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, cfg.value_clip or None, 0.5, cfg.ent_coef,
-                )
-                if cfg.bc_weight > 0:
-                    resp = assignment.update(m.policy)[:, demo_idx] if assignment is not None else None
-                    bc, bc_stats = demo_nll(m.policy, demo_feats, demo, gen, num_codes, mixture, resp)
-                    loss = loss + cfg.bc_weight * bc
-                    s["ppo/bc_nll"] = bc_stats["bc/nll"]
-                guard.value(it, "policy loss (PPO)", s["ppo/policy_loss"])
-                guard.value(it, "value loss", s["ppo/value_loss"])
-                opt["policy"].zero_grad(set_to_none=True)
-                opt["value"].zero_grad(set_to_none=True)
-                loss.backward()
-                guard.value(it, "policy gradient norm", torch.nn.utils.clip_grad_norm_(m.policy.parameters(), 0.5))
-                guard.value(it, "value gradient norm",  # without a shared encoder
-                            torch.nn.utils.clip_grad_norm_(opt["value"].param_groups[0]["params"], 0.5))
-                if it > cfg.policy_warmup_iterations:
-                    opt["policy"].step()
-                opt["value"].step()
-        stats.update(s)
-        guard.params(it, nets)  # after weight clipping: what a checkpoint of this iteration would hold
-        t4 = time.perf_counter()
-        for k, dt in zip(timers, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
-            timers[k] += dt
-        # 6. evaluation and logging
+            stats.update(update_policy(run, roll, it))
+            run.guard.params(it, {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior})
         if evaluate is not None and (it % cfg.eval_every == 0 or it == cfg.iterations):
             stats.update(evaluate(m.policy))
             stats["eval/env_steps"] = float(steps_done)
         if it % cfg.log_every == 0 or it in (1, cfg.iterations) or any(k.startswith("eval/") for k in stats):
-            elapsed = time.perf_counter() - t_start
-            stats.update({"time/elapsed_s": elapsed, "time/env_steps_per_s": steps_done / max(elapsed, 1e-9),
-                          "policy/log_std": m.policy.log_std.mean().item()})
-            stats.update({f"time/share_{k}": v / max(sum(timers.values()), 1e-9) for k, v in timers.items()})
+            stats.update(clock.rates(steps_done), **{"policy/log_std": m.policy.log_std.mean().item()})
+            stats.update(clock.shares())
             logger.log(it, stats)
-        if it % cfg.checkpoint_every == 0 and it != cfg.iterations:
-            checkpoint(it)
+        if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
+            checkpoint(it, steps_done)
         logger.update()
-    checkpoint(cfg.iterations)
     logger.close()
-    return ckpt_path
+
+
+def _checkpoint(run: AdversarialRun, path: Path, logger: RunLogger, env_info: dict[str, Any], arch: PolicyArch,
+                nets: dict[str, torch.nn.Module | None], iteration: int, env_steps: int) -> None:
+    save_run_checkpoint(path, logger, run.guard, iteration, {
+        "algo": run.cfg.learner, "config": to_dict(run.cfg), "env": env_info, "policy_arch": arch.to_dict(),
+        "policy": run.m.policy.state_dict(), "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
+        "optimizers": {k: o.state_dict() for k, o in run.opt.items()}, "rng": rng_state(run.gen), "env_steps": env_steps,
+    })
 
 
 def policy_and_demo_features(policy: GaussianPolicy, b: Rollout, demo: PaddedEpisodes,
@@ -533,13 +672,6 @@ def policy_and_demo_features(policy: GaussianPolicy, b: Rollout, demo: PaddedEpi
     demo_h0 = policy.initial_state(demo.mask.shape[1], demo.mask.device).unsqueeze(0)
     return side_by_side(features, (b.observations, b.prev_actions, b.starts, b.h0_policy.unsqueeze(0)),
                         (demo.observations, demo_prev, first_step_starts(demo.mask), demo_h0))
-
-
-@torch.no_grad()
-def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> Rollout:
-    dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts, codes=b.codes)
-    v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts, extra=b.codes)
-    return b.with_(log_probs=dist.log_prob(b.actions).sum(-1), values=v)
 
 
 def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_prev: torch.Tensor,
@@ -591,41 +723,27 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
-def _posterior_batches(roll: Rollout, code_steps: torch.Tensor, cfg: AdversarialConfig, gen: torch.Generator):
-    """The whole rollout in sequence mode; as many random windows in window mode."""
-    if cfg.update_mode != "window":
-        yield code_steps, roll
-        return
-    count = max(1, roll.num_steps * roll.num_envs // cfg.window_length)
-    t_idx, env = window_index(roll.num_steps, roll.num_envs, cfg.window_length, count, gen)
-    dev = roll.starts.device
-    t_idx, env = t_idx.to(dev), env.to(dev)
-    batch = roll._gather(t_idx, env, roll.h0_policy[env] * 0, roll.h0_value[env] * 0, zero_first=True)
-    yield code_steps[t_idx, env.unsqueeze(0).expand_as(t_idx)], batch
-
-
 def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any], demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
     """The periodic evaluation of a run: mode metrics on circles, per-task figures
-    on multi-task locomotion demonstrations (``pomil demos hopper``); None otherwise."""
-    if not cfg.eval_every:
+    on multi-task demonstrations (``pomil demos hopper``); None otherwise (see ``pomil.envs.evaluation_kind``)."""
+    kind = evaluation_kind(env_info["id"], demos.metadata) if cfg.eval_every else None
+    if kind is None:
         return None
-    if env_info["id"] == "pomil/Circles-v0":
-        from pomil.eval.rollout import evaluate_circles
+    if kind == "circles":
+        from pomil.eval.circles import evaluate_circles
 
         def measure(tp: TrainedPolicy) -> dict[str, float]:
             metrics, _ = evaluate_circles(tp, cfg.eval_episodes, seed=12345)
             return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
                     "eval/modes_covered": float(metrics["modes_covered"]), "eval/none_share": metrics["overall_none_share"]}
-    elif "tasks" in demos.metadata:
-        from pomil.eval.locomotion import evaluate_tasks, reference_of
+    else:
+        from pomil.eval.tasks import evaluate_tasks, reference_of
 
         reference = reference_of(demos.metadata, cfg.demos)
 
         def measure(tp: TrainedPolicy) -> dict[str, float]:
             res = evaluate_tasks(tp, reference, cfg.eval_episodes, seed=12345)
             return {f"eval/{task}/{k}": float(v) for task, r in res["tasks"].items() for k, v in r.items()}
-    else:
-        return None
 
     def evaluate(policy: GaussianPolicy) -> dict[str, float]:
         rng_state_before = torch.get_rng_state()

@@ -27,7 +27,7 @@ from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import (
     DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
-    save_checkpoint, seed_everything, write_json,
+    save_run_checkpoint, seed_everything, write_json,
 )
 
 
@@ -220,7 +220,7 @@ def _train_bc(config: BCConfig, resume: bool, lock: RunLock) -> Path:
         print(f"pomil: note: batch_episodes {config.batch_episodes} is more than the {demos.num_episodes} demonstration "
               f"episodes; each batch draws {demos.num_episodes}", file=sys.stderr)
     lock.acquire(resume)
-    start = (resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device)
+    start = (resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device, BCConfig)
              if resume else RunStart()).iteration
     if start == config.iterations:
         print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
@@ -233,14 +233,12 @@ def _train_bc(config: BCConfig, resume: bool, lock: RunLock) -> Path:
     guard = DivergenceGuard(ckpt_path, {"bc": lr_hint(config, "lr"), "policy": lr_hint(config, "lr")}, start, logger.close)
 
     def checkpoint(iteration: int) -> None:
-        logger.flush()
-        save_checkpoint(ckpt_path, {
-            "algo": "bc", "iteration": iteration, "config": to_dict(config),
+        save_run_checkpoint(ckpt_path, logger, guard, iteration, {
+            "algo": "bc", "config": to_dict(config),
             "env": {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")},
             "policy_arch": arch.to_dict(), "policy": policy.state_dict(),
             "optimizers": {"policy": optimizer.state_dict()}, "rng": rng_state(generator),
         })
-        guard.saved(iteration)
 
     t0 = time.perf_counter()
     for iteration in range(start + 1, config.iterations + 1):

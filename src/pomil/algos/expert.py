@@ -1,10 +1,10 @@
 """PPO experts: an MLP policy trained on a task's reward, for any Gymnasium
-environment with 1-D Box spaces (Hopper-v5 on its fast batched simulator).
+environment with 1-D Box spaces (Hopper on its fast batched simulator).
 
 The experts whose demonstrations the imitation learners see; by default they
 observe everything (``observation_mask`` restricts that).  One readable
 loop: collect one episode in each of ``num_envs`` batched copies, GAE,
-``epochs`` passes of shuffled single-step minibatches through the clipped
+``ppo_epochs`` passes of shuffled single-step minibatches through the clipped
 PPO loss.  Observations are normalised by running statistics (kept in the
 checkpoint and applied by :class:`pomil.TrainedPolicy`); rewards are divided
 by the running standard deviation of the discounted return; the learning rate
@@ -18,7 +18,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 
@@ -33,9 +33,10 @@ from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.rl.collect import collect
 from pomil.rl.gae import gae
 from pomil.rl.ppo import normalize, ppo_loss
+from pomil.rl.storage import Rollout
 from pomil.training import (
     DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
-    save_checkpoint, seed_everything, write_json,
+    save_run_checkpoint, seed_everything, write_json,
 )
 
 
@@ -58,7 +59,7 @@ class ExpertConfig(RunConfig):
                                      within="[0, inf)")
     hidden_size: int = option(64, "width of the policy's and value's hidden layers", within="[1, inf)")
     lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)", within="(0, inf)")
-    epochs: int = option(10, "PPO epochs per iteration", within="[1, inf)")
+    ppo_epochs: int = option(10, "PPO epochs per iteration (formerly 'epochs', still read)", within="[1, inf)")
     minibatches: int = option(16, "minibatches per epoch", within="[1, inf)")
     clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
     gamma: float = option(0.99, "discount", within="(0, 1]")
@@ -70,6 +71,9 @@ class ExpertConfig(RunConfig):
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
     checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)",
                                    within="[1, inf)")
+
+    RENAMED: ClassVar[dict[str, str]] = {"epochs": "ppo_epochs"}
+    """Old config keys, still read from config files and checkpoints (old -> new name)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -115,17 +119,45 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
         return _train_expert(cfg, resume, lock)
 
 
-def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
-    run_dir = Path(cfg.out)
-    ckpt_path = run_dir / "checkpoint.pt"
-    device = resolve_device(cfg.device)
+def _environment(cfg: ExpertConfig, device: torch.device):
+    """(batched env, constructor keywords, observation indices or None) of a run."""
     try:
         env_kwargs, mask = cfg.env_settings()
-        raw_env = make_vec_env(cfg.env_id, env_kwargs, cfg.num_envs, device, mask, seed=cfg.seed)
+        return make_vec_env(cfg.env_id, env_kwargs, cfg.num_envs, device, mask, seed=cfg.seed), env_kwargs, mask
     except PomilError:
         raise
     except Exception as err:  # unknown id, rejected keywords: gymnasium raises several types
         raise PomilError(f"experts: cannot build {cfg.env_id!r} ({str(err).splitlines()[0][:200]})") from None
+
+
+def ppo_update(cfg: ExpertConfig, policy: GaussianPolicy, value: torch.nn.Module, opt: torch.optim.Optimizer,
+               roll: Rollout, gen: torch.Generator, guard: DivergenceGuard, it: int) -> dict[str, float]:
+    """``ppo_epochs`` passes of shuffled single-step minibatches through the clipped PPO loss."""
+    stats: dict[str, float] = {}
+    params = [p for group in opt.param_groups for p in group["params"]]
+    for _ in range(cfg.ppo_epochs):
+        for b in roll.step_batches(cfg.minibatches, gen):
+            dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts)
+            new_v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts)
+            loss, stats = ppo_loss(
+                new_logp=dist.log_prob(b.actions).sum(-1), old_logp=b.log_probs,
+                advantages=normalize(b.advantages, b.mask), new_values=new_v, old_values=b.values, returns=b.returns,
+                entropy=dist.entropy().sum(-1), mask=b.mask, clip=cfg.clip, value_clip=None, vf_coef=cfg.vf_coef,
+                ent_coef=cfg.ent_coef)
+            guard.value(it, "policy loss (PPO)", stats["ppo/policy_loss"])
+            guard.value(it, "value loss", stats["ppo/value_loss"])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            guard.value(it, "policy and value gradient norm", torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm))
+            opt.step()
+    return stats
+
+
+def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
+    run_dir = Path(cfg.out)
+    ckpt_path = run_dir / "checkpoint.pt"
+    device = resolve_device(cfg.device)
+    raw_env, env_kwargs, mask = _environment(cfg, device)
     obs_norm = RunningNorm(raw_env.obs_dim).to(device)
     env = _NormalizedObs(raw_env, obs_norm)
     reward_norm = RunningNorm(1).to(device)
@@ -134,11 +166,10 @@ def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
     arch = PolicyArch(raw_env.obs_dim, raw_env.act_dim, "mlp", cfg.hidden_size, 0, cfg.log_std_init)
     policy = GaussianPolicy(arch).to(device)
     value = heads.value(raw_env.obs_dim, raw_env.act_dim, 0, "mlp", cfg.hidden_size).to(device)
-    params = list(policy.parameters()) + list(value.parameters())
-    opt = torch.optim.Adam(params, lr=cfg.lr, eps=1e-5)
+    opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=cfg.lr, eps=1e-5)
     nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
     lock.acquire(resume)
-    resumed = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device) if resume else RunStart()
+    resumed = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device, ExpertConfig) if resume else RunStart()
     start = resumed.iteration
     if start == cfg.iterations:
         raw_env.close()
@@ -147,19 +178,14 @@ def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
     write_json(run_dir / "config.json", {"algo": "expert", **to_dict(cfg)})
     logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.env_id} {cfg.task}",
                        key_stats=("env/return", "ppo/approx_kl"))
-    lr = lr_hint(cfg, "lr")
-    guard = DivergenceGuard(ckpt_path, {"policy": lr, "value": lr}, start, logger.close)
+    guard = DivergenceGuard(ckpt_path, {"policy": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr")}, start, logger.close)
     env_info = {"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}
 
     def checkpoint(iteration: int) -> None:
-        logger.flush()
-        save_checkpoint(ckpt_path, {
-            "algo": "expert", "iteration": iteration, "config": to_dict(cfg), "env": env_info,
-            "policy_arch": arch.to_dict(), "policy": policy.state_dict(), "obs_norm": obs_norm.state_dict(),
-            "nets": {k: n.state_dict() for k, n in nets.items()},
-            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen), "env_steps": steps_done,
-        })
-        guard.saved(iteration)
+        save_run_checkpoint(ckpt_path, logger, guard, iteration, {
+            "algo": "expert", "config": to_dict(cfg), "env": env_info, "policy_arch": arch.to_dict(),
+            "policy": policy.state_dict(), "obs_norm": obs_norm.state_dict(), "nets": {k: n.state_dict() for k, n in nets.items()},
+            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen), "env_steps": steps_done})
 
     steps_done = resumed.env_steps
     t_start = time.perf_counter()
@@ -168,25 +194,11 @@ def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
             group["lr"] = cfg.lr * (1.0 - (it - 1) / cfg.iterations)
         roll, next_values, _, raw_rewards = collect(env, policy, value, 0, execute, gen, device, cfg.rollout_threads)
         steps_done += int(roll.mask.sum())
-        # Rewards divided by the running std of the discounted return.
         reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
         guard.value(it, "environment reward", raw_rewards)
-        r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)
+        r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)  # divided by the running std of the return
         adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
-        roll = roll.with_(rewards=r, advantages=adv, returns=ret)
-        stats: dict[str, float] = {}
-        for _ in range(cfg.epochs):
-            for b in roll.step_batches(cfg.minibatches, gen):
-                dist, _ = policy.unroll(b.observations, b.prev_actions, b.h0_policy, b.starts)
-                new_v, _ = value.unroll(b.observations, b.prev_actions, b.h0_value, b.starts)
-                loss, stats = ppo_loss(dist.log_prob(b.actions).sum(-1), b.log_probs, normalize(b.advantages, b.mask), new_v,
-                                       b.values, b.returns, dist.entropy().sum(-1), b.mask, cfg.clip, None, cfg.vf_coef, cfg.ent_coef)
-                guard.value(it, "policy loss (PPO)", stats["ppo/policy_loss"])
-                guard.value(it, "value loss", stats["ppo/value_loss"])
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                guard.value(it, "policy and value gradient norm", torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm))
-                opt.step()
+        stats = ppo_update(cfg, policy, value, opt, roll.with_(rewards=r, advantages=adv, returns=ret), gen, guard, it)
         guard.params(it, nets)
         if it % cfg.log_every == 0 or it in (1, cfg.iterations):
             elapsed = time.perf_counter() - t_start

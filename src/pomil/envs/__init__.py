@@ -1,9 +1,24 @@
-"""Environments: the 2-D circles POMDP, batched MuJoCo Hopper, and any Gymnasium
-environment with 1-D Box spaces (:class:`pomil.envs.batch.GymSim`)."""
+"""Environments, and the registry that says how pomil runs each family of them.
+
+Three families, each declared once in :data:`FAMILIES` (Gymnasium's registry is
+the model: an id maps to how to make it):
+
+* ``circles``: the 2-D multi-modal POMDP (``pomil/Circles-v0``), its own batched simulator;
+* ``hopper``: Hopper-v5 on its fast batched MuJoCo simulator (:class:`pomil.envs.locomotion.HopperSim`);
+* ``gymnasium``: any other Gymnasium id with 1-D Box spaces, N copies stepped in turn
+  (:class:`pomil.envs.batch.GymSim`).
+
+A family says how to build its batched simulator, its dimensions, the actions its
+environment carries out, how a policy on it is evaluated (``circles``: mode metrics,
+``tasks``: per-task scores, for demonstrations that name their tasks) and its
+default number of latent codes.  Nothing outside ``envs/`` tests an environment id:
+it asks :func:`env_family` (or the functions below, which do).
+"""
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Callable, Literal, Sequence
 
 import gymnasium as gym
 import torch
@@ -14,77 +29,84 @@ from pomil.envs.locomotion import HOPPER_ID
 if CIRCLES_ID not in gym.registry:
     gym.register(id=CIRCLES_ID, entry_point="pomil.envs.circles:CirclesEnv")
 
+Executor = Callable[[torch.Tensor], torch.Tensor]
 
-def env_dims(env_id: str, env_kwargs: dict[str, Any], observation_mask: Sequence[int] | None = None) -> tuple[int, int]:
-    """(obs_dim, act_dim) of a registered environment with Box spaces, as the
-    learner sees it (``observation_mask``: indices of the observed entries).
 
-    Raises ValueError/TypeError (or gymnasium's errors) for an unknown id or
-    bad keyword arguments; callers turn those into user-facing errors.
-    """
-    if env_id == CIRCLES_ID:
-        from pomil.envs.circles import CirclesSpec
+@dataclass(frozen=True)
+class EnvFamily:
+    """How pomil runs the environments of one family (see the module docstring).
 
-        spec = CirclesSpec.from_dict(env_kwargs)
-        obs_dim, act_dim = spec.obs_dim, spec.act_dim
-    else:
-        from pomil.envs.batch import check_box_spaces
+    ``make(env_id, kwargs, num_envs, device, observation_mask, seed)`` -> the batched env;
+    ``dims(env_id, kwargs)`` -> (obs_dim, act_dim) unmasked; ``state_dim(env_id, kwargs)``
+    -> columns of the demonstrations' ``states``; ``executed_actions(env_id, kwargs)`` ->
+    raw policy actions to the actions carried out; ``default_num_codes(metadata)`` ->
+    the number of codes the demonstrations (their metadata) suggest, or None."""
 
-        env = gym.make(env_id, **env_kwargs)
-        try:
-            obs_dim, act_dim = check_box_spaces(env, env_id)
-        finally:
-            env.close()
+    name: str
+    claims: Callable[[str], bool]
+    make: Callable[..., Any]
+    dims: Callable[[str, dict[str, Any]], tuple[int, int]]
+    state_dim: Callable[[str, dict[str, Any]], int]
+    executed_actions: Callable[[str, dict[str, Any]], Executor]
+    evaluation: Literal["circles", "tasks"]
+    default_num_codes: Callable[[dict[str, Any]], int | None] = lambda metadata: None
+
+
+# ------------------------------------------------------------------- circles
+def _circles_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=None, seed=None):
+    from pomil.envs.circles import CirclesSpec, CirclesVecEnv
+
     if observation_mask is not None:
-        from pomil.envs.wrappers import check_indices
-
-        obs_dim = len(check_indices(observation_mask, obs_dim))
-    return obs_dim, act_dim
+        raise ValueError("the circles environment takes no observation mask (it observes positions only)")
+    return CirclesVecEnv(CirclesSpec.from_dict(env_kwargs), num_envs, device)
 
 
-def state_dim(env_id: str, env_kwargs: dict[str, Any]) -> int:
-    """Columns of the demonstrations' ``states`` for an environment: the circles'
-    positions (2), otherwise the full (unmasked) observation."""
-    return 2 if env_id == CIRCLES_ID else env_dims(env_id, env_kwargs)[0]
+def _circles_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
+    from pomil.envs.circles import CirclesSpec
+
+    spec = CirclesSpec.from_dict(env_kwargs)
+    return spec.obs_dim, spec.act_dim
 
 
-def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
-                 observation_mask: Sequence[int] | None = None, seed: int | None = None):
-    """The batched (torch) environment training uses for ``env_id``.
+def _circles_executed(env_id: str, env_kwargs: dict[str, Any]) -> Executor:
+    from pomil.envs.circles import CirclesSpec, executed_actions
 
-    ``reset() -> obs (N, d)``; ``step(actions) -> (obs, reward, terminated,
-    truncated)``; one episode per copy between resets.  Circles and Hopper-v5
-    have their own batched simulators; every other id runs N gymnasium copies
-    (:class:`pomil.envs.batch.GymSim`).
-    """
-    if env_id == CIRCLES_ID:
-        from pomil.envs.circles import CirclesSpec, CirclesVecEnv
+    action_type = CirclesSpec.from_dict(env_kwargs).action_type
+    return lambda actions: executed_actions(actions, action_type)
 
-        if observation_mask is not None:
-            raise ValueError("the circles environment takes no observation mask (it observes positions only)")
-        return CirclesVecEnv(CirclesSpec.from_dict(env_kwargs), num_envs, device)
-    from pomil.envs.locomotion import HopperSim, TorchVecEnv
 
-    if env_id == HOPPER_ID:
-        return TorchVecEnv(HopperSim(num_envs, env_kwargs), observation_mask, device, seed)
+def _circles_codes(metadata: dict[str, Any]) -> int | None:
+    circles = (metadata.get("env_kwargs") or {}).get("circles")
+    return len(circles) if circles else None  # one code per circle (mode)
+
+
+# ------------------------------------------------------- Gymnasium and Hopper
+def _gym_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
+    from pomil.envs.batch import check_box_spaces
+
+    env = gym.make(env_id, **env_kwargs)
+    try:
+        return check_box_spaces(env, env_id)
+    finally:
+        env.close()
+
+
+def _hopper_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=None, seed=None):
+    from pomil.envs.locomotion import HopperSim
+    from pomil.envs.vec import TorchVecEnv
+
+    return TorchVecEnv(HopperSim(num_envs, env_kwargs), observation_mask, device, seed)
+
+
+def _gym_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=None, seed=None):
     from pomil.envs.batch import GymSim
+    from pomil.envs.vec import TorchVecEnv
 
     return TorchVecEnv(GymSim(env_id, num_envs, env_kwargs), observation_mask, device, seed)
 
 
-def executed_actions_fn(env_id: str, env_kwargs: dict[str, Any]) -> Callable[[torch.Tensor], torch.Tensor]:
-    """Maps raw policy actions to the actions the environment carries out.
-
-    Learners feed these to critics and posteriors and as the previous action,
-    so that expert and policy actions are compared in the same form.  Circles:
-    unit moving directions; MuJoCo: controls clamped to the actuators' range
-    (what MuJoCo applies); the identity elsewhere.
-    """
-    if env_id == CIRCLES_ID:
-        from pomil.envs.circles import CirclesSpec, executed_actions
-
-        action_type = CirclesSpec.from_dict(env_kwargs).action_type
-        return lambda actions: executed_actions(actions, action_type)
+def _gym_executed(env_id: str, env_kwargs: dict[str, Any]) -> Executor:
+    """MuJoCo: controls clamped to the actuators' range (what MuJoCo applies); the identity elsewhere."""
     env = gym.make(env_id, **env_kwargs)
     try:
         model = getattr(env.unwrapped, "model", None)
@@ -97,3 +119,81 @@ def executed_actions_fn(env_id: str, env_kwargs: dict[str, Any]) -> Callable[[to
     finally:
         env.close()
     return lambda actions: torch.maximum(torch.minimum(actions, hi.to(actions.device)), lo.to(actions.device))
+
+
+def _full_observation(env_id: str, env_kwargs: dict[str, Any]) -> int:
+    return _gym_dims(env_id, env_kwargs)[0]
+
+
+FAMILIES: tuple[EnvFamily, ...] = (
+    EnvFamily("circles", lambda env_id: env_id == CIRCLES_ID, _circles_make, _circles_dims,
+              state_dim=lambda env_id, kwargs: 2,  # the positions
+              executed_actions=_circles_executed, evaluation="circles", default_num_codes=_circles_codes),
+    EnvFamily("hopper", lambda env_id: env_id == HOPPER_ID, _hopper_make, _gym_dims, _full_observation,
+              _gym_executed, evaluation="tasks"),
+    EnvFamily("gymnasium", lambda env_id: True, _gym_make, _gym_dims, _full_observation, _gym_executed,
+              evaluation="tasks"),
+)
+"""Every family; the first that claims an id runs it (the last claims every id)."""
+
+
+def env_family(env_id: str) -> EnvFamily:
+    """The family that runs ``env_id``."""
+    return next(family for family in FAMILIES if family.claims(env_id))
+
+
+def env_dims(env_id: str, env_kwargs: dict[str, Any], observation_mask: Sequence[int] | None = None) -> tuple[int, int]:
+    """(obs_dim, act_dim) of a registered environment with Box spaces, as the
+    learner sees it (``observation_mask``: indices of the observed entries).
+
+    Raises ValueError/TypeError (or gymnasium's errors) for an unknown id or
+    bad keyword arguments; callers turn those into user-facing errors.
+    """
+    obs_dim, act_dim = env_family(env_id).dims(env_id, env_kwargs)
+    if observation_mask is not None:
+        from pomil.envs.wrappers import check_indices
+
+        obs_dim = len(check_indices(observation_mask, obs_dim))
+    return obs_dim, act_dim
+
+
+def state_dim(env_id: str, env_kwargs: dict[str, Any]) -> int:
+    """Columns of the demonstrations' ``states`` for an environment: the circles'
+    positions (2), otherwise the full (unmasked) observation."""
+    return env_family(env_id).state_dim(env_id, env_kwargs)
+
+
+def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
+                 observation_mask: Sequence[int] | None = None, seed: int | None = None):
+    """The batched (torch) environment training uses for ``env_id``.
+
+    ``reset() -> obs (N, d)``; ``step(actions) -> (obs, reward, terminated,
+    truncated)``; one episode per copy between resets.  Circles and Hopper-v5
+    have their own batched simulators; every other id runs N gymnasium copies
+    (:class:`pomil.envs.batch.GymSim`).
+    """
+    return env_family(env_id).make(env_id, env_kwargs, num_envs, device, observation_mask, seed)
+
+
+def executed_actions_fn(env_id: str, env_kwargs: dict[str, Any]) -> Executor:
+    """Maps raw policy actions to the actions the environment carries out.
+
+    Learners feed these to critics and posteriors and as the previous action,
+    so that expert and policy actions are compared in the same form.  Circles:
+    unit moving directions; MuJoCo: controls clamped to the actuators' range
+    (what MuJoCo applies); the identity elsewhere.
+    """
+    return env_family(env_id).executed_actions(env_id, env_kwargs)
+
+
+def evaluation_kind(env_id: str, metadata: dict[str, Any]) -> Literal["circles", "tasks"] | None:
+    """How a policy on ``env_id`` trained on demonstrations with ``metadata`` is evaluated:
+    ``circles`` (mode metrics), ``tasks`` (per-task scores: the demonstrations name their
+    tasks, as ``pomil demos hopper`` and ``pomil demos merge`` record them) or None."""
+    kind = env_family(env_id).evaluation
+    return kind if kind != "tasks" or "tasks" in metadata else None
+
+
+def default_num_codes(metadata: dict[str, Any]) -> int | None:
+    """The number of latent codes the demonstrations' environment suggests (circles: one per circle)."""
+    return env_family(str(metadata.get("env_id", ""))).default_num_codes(metadata)

@@ -8,6 +8,7 @@ from typing import Sequence
 import numpy as np
 
 from pomil.data import atomic_write
+from pomil.envs.locomotion import HOPPER_ID
 
 COLOURS = ["tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive"]
 
@@ -73,7 +74,7 @@ def learning_curves(results: dict, path: str | Path) -> None:
         ax.axhline(1.0, color="black", linewidth=0.8)
         ax.axhline(results["reference"]["still_returns"][task] / results["reference"]["expert_returns"][task],
                    color="grey", linestyle=":", linewidth=1, label="zero actions")
-        env = str(results.get("env_id", "Hopper-v5")).split("-v")[0]
+        env = str(results.get("env_id", HOPPER_ID)).split("-v")[0]  # results of before env_id was recorded: Hopper's
         ax.set_title(f"{env} {task}" + (f" ({results['setting']} setting)" if results.get("setting") else ""))
         ax.set_xlabel("environment steps")
         ax.set_ylabel("normalised return (code matched to task)")

@@ -6,7 +6,7 @@ Shared by every on-policy loop (adversarial learners, PPO experts).
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Callable, Iterator
+from typing import Callable, Iterator, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -28,18 +28,28 @@ def torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+class Collected(NamedTuple):
+    """What :func:`collect` returns."""
+
+    rollout: Rollout
+    next_values: torch.Tensor
+    """(T, N): V(s_{t+1}), the final observation's value at the last step."""
+    codes: torch.Tensor
+    """(N,): the latent code index of each copy's episode."""
+    env_rewards: torch.Tensor
+    """(T, N): the environment's own rewards, zero outside episodes (never learned from by imitation learners)."""
+
+
 @torch.no_grad()
 def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int, execute: Callable[[torch.Tensor], torch.Tensor],
-            generator: torch.Generator, device: torch.device, threads: int = 1) -> tuple[Rollout, torch.Tensor, torch.Tensor, torch.Tensor]:
+            generator: torch.Generator, device: torch.device, threads: int = 1) -> Collected:
     """One episode in each of the env's N copies, a latent code per episode
     (none when ``num_codes`` is 0).  ``execute`` maps raw actions to executed
     ones (``pomil.envs.executed_actions_fn``).  Episodes may end at different
     steps; ``mask`` marks the steps that belong to an episode.
 
-    Returns (rollout, next_values (T, N) = V(s_{t+1}) with the final observation's
-    value at the last step, code index per env (N,), the environment's own
-    rewards (T, N), zero outside episodes: never used for learning by
-    imitation learners).
+    Returns a :class:`Collected`: the rollout, the next states' values, each
+    episode's code and the environment's own rewards.
 
     The policy steps with ``threads`` torch threads (0: as set).  Its per-step
     tensors are small, and with one thread torch's OpenMP workers do not spin
@@ -86,4 +96,4 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int, exec
         codes=codes.unsqueeze(0).expand(T, -1, -1), log_probs=st["logp"], values=values[:-1],
         terminated=st["term"], truncated=st["trunc"], mask=st["mask"], h0_policy=h0_pi, h0_value=h0_v,
     )
-    return roll, values[1:], code_idx, st["env_reward"]
+    return Collected(roll, values[1:], code_idx, st["env_reward"])

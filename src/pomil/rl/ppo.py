@@ -19,7 +19,7 @@ def normalize(x: torch.Tensor, mask: torch.Tensor | None = None, eps: float = 1e
 
 
 def ppo_loss(
-    new_logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor,
+    *, new_logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor,
     new_values: torch.Tensor, old_values: torch.Tensor, returns: torch.Tensor, entropy: torch.Tensor,
     mask: torch.Tensor | None = None, clip: float = 0.2, value_clip: float | None = None,
     vf_coef: float = 0.5, ent_coef: float = 0.0,
@@ -28,6 +28,7 @@ def ppo_loss(
 
     All tensors share one shape; ``mask`` selects the valid entries.
     Advantages are used as given (normalise them beforehand if wanted).
+    Keyword arguments only: twelve positional numbers cannot be read at a call site.
     """
     log_ratio = new_logp - old_logp
     ratio = log_ratio.exp()

@@ -8,14 +8,14 @@ import numpy as np
 import torch
 
 from pomil.api import TrainedPolicy
-from pomil.envs.circles import CirclesSpec, CirclesVecEnv, DEFAULT_NONE_THRESHOLD, classify_modes
+from pomil.envs.circles import ENV_ID, CirclesSpec, CirclesVecEnv, DEFAULT_NONE_THRESHOLD, classify_modes
 from pomil.errors import PomilError
 from pomil.eval.metrics import mode_metrics
 
 
 def circles_spec_of(policy: TrainedPolicy) -> CirclesSpec:
-    if policy.env.get("id") != "pomil/Circles-v0":
-        raise PomilError(f"this checkpoint was trained on {policy.env.get('id')!r}; only pomil/Circles-v0 is supported here")
+    if policy.env.get("id") != ENV_ID:
+        raise PomilError(f"this checkpoint was trained on {policy.env.get('id')!r}; only {ENV_ID} is supported here")
     return CirclesSpec.from_dict(policy.env.get("kwargs", {}))
 
 

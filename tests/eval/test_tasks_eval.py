@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pomil.eval.locomotion import match_codes, task_scores
+from pomil.eval.tasks import match_codes, task_scores
 
 REFERENCE = {
     "tasks": {"forward": {"forward_reward_weight": 1.0}, "backward": {"forward_reward_weight": -1.0}},

@@ -1,0 +1,80 @@
+"""The one table of learners: name -> config class, train function, help.
+
+``pomil train <name>``, ``pomil sweep`` (its ``"learner"`` key) and the
+reproductions (``--learners``) all read it.  A learner is a train function
+with its config class and the config values its name fixes: the three
+adversarial learners are one loop (``algos/adversarial.py``) with
+``learner`` set; the reproductions' ``bc-mlp`` and ``bc-gru`` are behaviour
+cloning with ``policy`` set.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from pomil.errors import PomilError
+
+
+@dataclass(frozen=True)
+class Learner:
+    """How to train one learner.
+
+    ``module`` holds ``config`` (the config class) and ``train`` (the function
+    ``train(cfg, resume=False) -> checkpoint path``); both are imported on first
+    use, so that reading the table costs no torch import.  ``fixed``: config
+    values the learner's name sets (not flags of its subcommand)."""
+
+    name: str
+    help: str
+    module: str
+    config_name: str
+    train_name: str
+    fixed: dict[str, Any] = field(default_factory=dict)
+    command: bool = True  # a ``pomil train`` subcommand (bc-mlp / bc-gru are bc with --policy)
+
+    @property
+    def config(self) -> type:
+        return getattr(importlib.import_module(self.module), self.config_name)
+
+    @property
+    def train(self) -> Callable[..., Path]:
+        return getattr(importlib.import_module(self.module), self.train_name)
+
+    def make_config(self, values: dict[str, Any], source: str = "config") -> Any:
+        """The learner's config from ``values`` (its fixed values win)."""
+        from pomil.config import from_dict
+
+        return from_dict(self.config, {**values, **self.fixed}, source=source)
+
+
+def _adversarial(name: str, text: str) -> Learner:
+    return Learner(name, text, "pomil.algos.adversarial", "AdversarialConfig", "train_adversarial", {"learner": name})
+
+
+def _bc(name: str, text: str, **fixed: Any) -> Learner:
+    return Learner(name, text, "pomil.algos.bc", "BCConfig", "train_bc", fixed, command=not fixed)
+
+
+LEARNERS: dict[str, Learner] = {learner.name: learner for learner in (
+    _bc("bc", "behaviour cloning (feed-forward or GRU policy)"),
+    _bc("bc-mlp", "behaviour cloning with a feed-forward policy (current observation only)", policy="mlp"),
+    _bc("bc-gru", "behaviour cloning with a GRU policy (belief over the history)", policy="gru"),
+    _adversarial("gail", "GAIL: MLP networks, no codes, GAN discriminator"),
+    _adversarial("infogail", "InfoGAIL: MLP networks, latent codes, Wasserstein critic"),
+    _adversarial("infogail-pomdp", "InfoGAIL-POMDP (the paper's method): separate GRU belief encoders, codes, "
+                                   "Wasserstein critic"),
+)}
+"""Every learner by name."""
+
+ADVERSARIAL = tuple(name for name, learner in LEARNERS.items() if learner.module == "pomil.algos.adversarial")
+"""The adversarial learners (one loop, configured)."""
+
+
+def learner(name: str, where: str = "learner") -> Learner:
+    """The learner called ``name``; a PomilError naming the choices otherwise."""
+    if name not in LEARNERS:
+        raise PomilError(f"{where} must be one of {sorted(LEARNERS)}, got {name!r}")
+    return LEARNERS[name]

@@ -1,0 +1,111 @@
+"""The adversarial learner's phases, each on one fixed batch without a training run."""
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from pomil.algos.adversarial import (
+    AdversarialConfig, AdversarialRun, BatchSampler, build_modules, build_optimizers, update_critic, update_policy,
+    update_posterior, with_rewards,
+)
+from pomil.envs import executed_actions_fn, make_vec_env
+from pomil.nn.policy import shift_actions
+from pomil.rl.collect import Collected, collect
+from pomil.rl.ppo import masked_mean
+
+
+def make_run(demos, **kw):
+    cfg = AdversarialConfig(**{**dict(demos="d.npz", hidden_size=16, num_envs=8, critic_batch=4, critic_steps=2,
+                                      minibatches=2, ppo_epochs=1, bc_weight=0.0, policy_warmup_iterations=1), **kw})
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(0)
+    env_id, kwargs = demos.metadata["env_id"], demos.metadata["env_kwargs"]
+    execute = executed_actions_fn(env_id, kwargs)
+    m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, 2, "cpu")
+    expert = demos.padded("cpu")
+    expert = replace(expert, actions=execute(expert.actions))
+    sampler = BatchSampler(cfg.update_mode, cfg.window_length)
+    run = AdversarialRun(cfg, m, build_optimizers(cfg, m), gen, sampler, expert, shift_actions(expert.actions),
+                         execute, num_codes=2)
+    collected = collect(make_vec_env(env_id, kwargs, cfg.num_envs), m.policy, m.value, 2, execute, gen, "cpu")
+    return run, collected
+
+
+def params(net):
+    return [p.detach().clone() for p in net.parameters()]
+
+
+def changed(before, net):
+    return any(not torch.equal(a, b) for a, b in zip(before, net.parameters()))
+
+
+def test_collect_returns_a_named_rollout(demos):
+    _, c = make_run(demos)
+    assert isinstance(c, Collected)
+    assert c.rollout.num_envs == 8 and c.next_values.shape == c.env_rewards.shape == (33, 8)
+    assert c.codes.shape == (8,) and set(c.codes.tolist()) <= {0, 1}
+
+
+@pytest.mark.parametrize("mode", ["sequence", "window"])
+def test_the_sampler_cuts_whole_episodes_or_windows(demos, mode):
+    run, c = make_run(demos, update_mode=mode, window_length=5)
+    e = run.sampler.expert(run.expert, run.expert.actions, run.expert_prev, 4, run.gen)
+    assert e[0].shape == ((33 if mode == "sequence" else 5), 4, 2) and bool(e[3][0].all())  # starts at the first step
+    p = run.sampler.policy(c.rollout, 4, run.gen)
+    assert p.num_envs == 4 and p.num_steps == (33 if mode == "sequence" else 5)
+    code_steps = c.codes.unsqueeze(0).expand(33, -1)
+    (codes, batch), = run.sampler.posterior(c.rollout, code_steps, run.gen)
+    assert batch.num_envs == (8 if mode == "sequence" else 33 * 8 // 5) and codes.shape == batch.mask.shape
+    assert len(list(run.sampler.minibatches(c.rollout, 2, run.gen))) == 2
+
+
+def test_the_critic_phase_moves_only_the_critic(demos):
+    run, c = make_run(demos)
+    critic, policy = params(run.m.critic), params(run.m.policy)
+    s = update_critic(run, c.rollout)
+    assert set(s) == {"critic/wasserstein", "critic/gradient_penalty", "critic/loss"}
+    assert changed(critic, run.m.critic) and not changed(policy, run.m.policy)
+
+
+def test_the_posterior_phase_moves_only_the_posterior_and_is_empty_without_codes(demos):
+    run, c = make_run(demos)
+    before = params(run.m.posterior)
+    s = update_posterior(run, c.rollout, c.codes)
+    assert 0.0 <= s["posterior/accuracy"] <= 1.0 and changed(before, run.m.posterior)
+    assert update_posterior(replace(run, m=replace(run.m, posterior=None)), c.rollout, c.codes) == {}
+
+
+def test_rewards_standardise_the_critic_term_and_add_the_weighted_log_posterior(demos):
+    run, c = make_run(demos, mi_weight=0.0)
+    roll, s = with_rewards(run, c.rollout, c.codes, c.next_values)
+    mask = roll.mask
+    assert masked_mean(roll.rewards, mask).item() == pytest.approx(0.0, abs=1e-5)
+    assert masked_mean(roll.rewards ** 2, mask).sqrt().item() == pytest.approx(1.0, abs=1e-4)
+    weighted, s2 = with_rewards(replace(run, cfg=replace(run.cfg, mi_weight=2.0)), c.rollout, c.codes, c.next_values)
+    assert s2["reward/total"] == pytest.approx(s["reward/total"] + 2.0 * s2["reward/log_posterior"], abs=1e-5)
+    assert roll.advantages.shape == roll.returns.shape == (33, 8)
+
+
+@pytest.mark.parametrize("mode", ["sequence", "window"])
+def test_the_policy_phase_waits_out_the_warm_up_then_moves_the_policy(demos, mode):
+    run, c = make_run(demos, update_mode=mode)
+    roll, _ = with_rewards(run, c.rollout, c.codes, c.next_values)
+    policy, value = params(run.m.policy), params(run.m.value)
+    s = update_policy(run, roll, it=1)  # policy_warmup_iterations = 1
+    assert not changed(policy, run.m.policy) and changed(value, run.m.value)
+    assert {"ppo/policy_loss", "ppo/value_loss", "ppo/approx_kl"} <= set(s)
+    update_policy(run, roll, it=2)
+    assert changed(policy, run.m.policy)
+
+
+def test_no_function_in_algos_is_longer_than_a_screen():
+    import ast
+    from pathlib import Path
+
+    algos = Path(__file__).resolve().parents[2] / "src" / "pomil" / "algos"
+    functions = [(p, n) for p in algos.glob("*.py") for n in ast.walk(ast.parse(p.read_text()))
+                 if isinstance(n, ast.FunctionDef)]
+    long = [f"{p.name}:{n.name} ({n.end_lineno - n.lineno + 1} lines)" for p, n in functions
+            if n.end_lineno - n.lineno + 1 > 60]
+    assert long == []

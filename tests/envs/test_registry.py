@@ -1,0 +1,54 @@
+"""The environment registry: each family declared once, and no environment id outside envs/."""
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from pomil.envs import (
+    FAMILIES, default_num_codes, env_dims, env_family, evaluation_kind, executed_actions_fn, make_vec_env, state_dim,
+)
+from pomil.envs.circles import ENV_ID as CIRCLES_ID
+from pomil.envs.circles import CirclesVecEnv
+from pomil.envs.locomotion import HOPPER_ID, HopperSim
+from pomil.envs.batch import GymSim
+
+SRC = Path(__file__).resolve().parents[2] / "src" / "pomil"
+
+
+@pytest.mark.parametrize("env_id, family, sim, dims, states", [
+    (CIRCLES_ID, "circles", None, (2, 2), 2),
+    (HOPPER_ID, "hopper", HopperSim, (11, 3), 11),
+    ("Pendulum-v1", "gymnasium", GymSim, (3, 1), 3),
+])
+def test_each_id_is_run_by_its_family(env_id, family, sim, dims, states):
+    assert env_family(env_id).name == family
+    kwargs = {"circles": [[0.0, 5.0, 5.0, 1], [0.0, -5.0, 5.0, -1]]} if family == "circles" else {}
+    env = make_vec_env(env_id, kwargs, 2)
+    try:
+        assert isinstance(env, CirclesVecEnv) if sim is None else isinstance(env.sim, sim)
+    finally:
+        if sim is not None:
+            env.close()
+    assert env_dims(env_id, kwargs) == dims
+    assert state_dim(env_id, kwargs) == states
+
+
+def test_families_declare_evaluation_actions_and_codes():
+    assert [f.name for f in FAMILIES] == ["circles", "hopper", "gymnasium"]
+    assert evaluation_kind(CIRCLES_ID, {}) == "circles"
+    assert evaluation_kind(HOPPER_ID, {"tasks": {}}) == "tasks"
+    assert evaluation_kind("Pendulum-v1", {}) is None  # no tasks named: nothing to score against
+    assert default_num_codes({"env_id": CIRCLES_ID, "env_kwargs": {"circles": [[0, 1, 1, 1]] * 3}}) == 3
+    assert default_num_codes({"env_id": HOPPER_ID, "env_kwargs": {}}) is None
+    clamp = executed_actions_fn(HOPPER_ID, {})
+    assert clamp(torch.tensor([[2.0, -3.0, 0.5]])).tolist() == [[1.0, -1.0, 0.5]]
+    assert executed_actions_fn("Pendulum-v1", {})(torch.tensor([[5.0]])).tolist() == [[5.0]]  # not MuJoCo: as given
+
+
+def test_no_environment_id_appears_outside_envs():
+    ids = re.compile(r"Circles-v\d|Hopper-v\d")
+    found = [f"{p.relative_to(SRC)}:{n}" for p in SRC.rglob("*.py") if p.parent.name != "envs"
+             for n, line in enumerate(p.read_text().splitlines(), 1) if ids.search(line)]
+    assert found == []
