@@ -192,7 +192,7 @@ def test_non_finite_checkpoints_are_never_written_and_loaders_refuse_them(demos_
 # --------------------------------------------------------- full / read-only disk
 def test_full_disk_at_a_checkpoint_is_one_error_and_the_previous_checkpoint_stays(demos_path, tmp_path, monkeypatch):
     out = tmp_path / "full"
-    real_save, real_fdopen = bc.save_checkpoint, os.fdopen
+    real_save, real_fdopen = pomil.training.save_checkpoint, os.fdopen
     saves = []
 
     class FullFile:
@@ -217,7 +217,7 @@ def test_full_disk_at_a_checkpoint_is_one_error_and_the_previous_checkpoint_stay
             monkeypatch.setattr(pomil.data.os, "fdopen", lambda *a, **k: FullFile(real_fdopen(*a, **k)))
         real_save(path, payload)
 
-    monkeypatch.setattr(bc, "save_checkpoint", save)
+    monkeypatch.setattr(pomil.training, "save_checkpoint", save)  # what every run's checkpoint goes through
     with pytest.raises(PomilError) as err:
         train_bc(_bc(demos_path, out))
     assert str(err.value) == f"{out / 'checkpoint.pt'}: cannot write (No space left on device); the previous checkpoint.pt is unchanged"
