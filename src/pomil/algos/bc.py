@@ -114,9 +114,15 @@ def episode_log_likelihoods(policy: GaussianPolicy, data: PaddedEpisodes, prev_a
     for start in range(0, data.mask.shape[1], chunk):
         idx = torch.arange(start, min(start + chunk, data.mask.shape[1]), device=data.mask.device)
         part = data.select(idx)
-        dist = policy.dist_every_code(episode_features(policy, part.observations, prev_actions[:, idx], part.mask))
-        out.append((dist.log_prob(part.actions.unsqueeze(0)).sum(-1) * part.mask.to(part.actions.dtype)).sum(1))
+        out.append(_code_log_likelihoods(
+            policy.dist_every_code(episode_features(policy, part.observations, prev_actions[:, idx], part.mask)), part))
     return torch.cat(out, dim=1)
+
+
+def _code_log_likelihoods(dist_every_code, data: PaddedEpisodes) -> torch.Tensor:
+    """(K, B): each whole episode's log-likelihood under each code."""
+    m = data.mask.to(data.observations.dtype)
+    return (dist_every_code.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)
 
 
 def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisodes, generator: torch.Generator,
@@ -175,7 +181,7 @@ def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: 
 def _mixture_nll(policy: GaussianPolicy, dist_every_code, data: PaddedEpisodes,
                  resp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
     m = data.mask.to(data.observations.dtype)
-    ll = (dist_every_code.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)  # (K, B): each episode under each code
+    ll = _code_log_likelihoods(dist_every_code, data)
     resp = balanced_responsibilities(ll.detach()) if resp is None else resp
     loss = -(resp * ll).sum() / m.sum()
     return loss, resp, {"bc/nll": loss.item(), "bc/responsibility_max": resp.max(0).values.mean().item(),
