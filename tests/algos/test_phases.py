@@ -6,12 +6,13 @@ import pytest
 import torch
 
 from pomil.algos.adversarial import (
-    AdversarialConfig, AdversarialRun, BatchSampler, build_modules, build_optimizers, update_critic, update_policy,
+    AdversarialConfig, AdversarialRun, BatchSampler, absorbing_bootstrap, build_modules, build_optimizers, update_critic, update_policy,
     update_posterior, with_rewards,
 )
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.nn.policy import shift_actions
 from pomil.rl.collect import Collected, collect
+from pomil.rl.gae import gae
 from pomil.rl.ppo import masked_mean
 
 
@@ -85,6 +86,43 @@ def test_rewards_standardise_the_critic_term_and_add_the_weighted_log_posterior(
     weighted, s2 = with_rewards(replace(run, cfg=replace(run.cfg, mi_weight=2.0)), c.rollout, c.codes, c.next_values)
     assert s2["reward/total"] == pytest.approx(s["reward/total"] + 2.0 * s2["reward/log_posterior"], abs=1e-5)
     assert roll.advantages.shape == roll.returns.shape == (33, 8)
+
+
+def fall_or_stay_batch():
+    """Two episodes of constant reward -1 and zero values: env 0 falls (terminates) at step 1, env 1 stays up to
+    the time limit at step 3 (truncated, bootstrapped with value 0)."""
+    r = torch.tensor([[-1.0, -1.0], [-1.0, -1.0], [0.0, -1.0], [0.0, -1.0]])
+    mask = torch.tensor([[True, True], [True, True], [False, True], [False, True]])
+    terminated = torch.zeros(4, 2, dtype=torch.bool)
+    terminated[1, 0] = True
+    truncated = torch.zeros(4, 2, dtype=torch.bool)
+    truncated[3, 1] = True
+    return r, mask, terminated, truncated
+
+
+def test_a_return_that_ends_at_termination_pays_for_falling_when_rewards_are_negative():
+    r, mask, term, trunc = fall_or_stay_batch()
+    _, ret = gae(r, torch.zeros(4, 2), torch.zeros(4, 2), term, trunc, gamma=0.5, lam=1.0)
+    assert ret[0].tolist() == pytest.approx([-1.5, -1.875])  # falling: -1 - 0.5; staying: -1 - .5 - .25 - .125
+
+
+def test_the_absorbing_state_takes_the_lowest_reward_so_falling_never_pays():
+    r, mask, term, trunc = fall_or_stay_batch()
+    r[3, 1] = -3.0  # the batch's lowest step reward, on the step that stays up last
+    nv, v_abs = absorbing_bootstrap(r, mask, term, torch.zeros(4, 2), gamma=0.5)
+    assert v_abs == pytest.approx(-6.0)  # -3 / (1 - 0.5)
+    assert nv[1, 0].item() == pytest.approx(-6.0) and nv.sum().item() == pytest.approx(-6.0)  # only where it fell
+    _, ret = gae(r, torch.zeros(4, 2), nv, torch.zeros_like(term), term | trunc, gamma=0.5, lam=1.0)
+    assert ret[0].tolist() == pytest.approx([-1 - 0.5 - 0.25 * 6.0, -1 - 0.5 - 0.25 - 0.125 * 3])  # falls -3.0 < stays -2.125
+    assert absorbing_bootstrap(r, mask, torch.zeros_like(term), torch.zeros(4, 2), gamma=0.5)[1] == 0.0
+
+
+def test_absorbing_termination_leaves_batches_without_terminations_unchanged(demos):
+    run, c = make_run(demos)
+    assert not c.rollout.terminated.any()
+    a, _ = with_rewards(run, c.rollout, c.codes, c.next_values)
+    e, _ = with_rewards(replace(run, cfg=replace(run.cfg, termination="end")), c.rollout, c.codes, c.next_values)
+    assert torch.equal(a.returns, e.returns) and torch.equal(a.advantages, e.advantages)
 
 
 @pytest.mark.parametrize("mode", ["sequence", "window"])

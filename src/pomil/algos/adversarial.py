@@ -123,6 +123,9 @@ class AdversarialConfig(RunConfig):
     vf_coef: float = option(0.5, "weight of the value loss in the PPO loss", within="[0, inf)")
     max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update", within="(0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
+    termination: Literal["absorbing", "end"] = option(
+        "absorbing", "a policy episode that terminates (e.g. Hopper falls): absorbing = it goes on in an absorbing state "
+                     "paid the batch's lowest step reward, so ending early never pays (DAC); end = its return ends there")
     gamma: float = option(0.99, "discount", within="(0, 1]")
     gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
     clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
@@ -164,7 +167,7 @@ class AdversarialConfig(RunConfig):
         "paper-text": {
             "critic_optimizer": "rmsprop", "weight_clip": 0.01, "gradient_penalty": 0.0, "lr": 2e-4, "lr_critic": 2e-4,
             "lr_posterior": 2e-4, "update_mode": "window", "bc_init_codes": "random", "bc_init_iterations": 300,
-            "bc_weight": 0.0, "policy_warmup_iterations": 0,
+            "bc_weight": 0.0, "policy_warmup_iterations": 0, "termination": "end",
         },
     }
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
@@ -475,8 +478,30 @@ def with_rewards(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor, nex
     """The rollout with the imitation rewards (:func:`rewards`), GAE advantages and returns."""
     r, s = rewards(run.m, roll, code_idx, run.cfg, run.objective)
     run.check(it, "reward", r)
-    adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, run.cfg.gamma, run.cfg.gae_lambda)
+    terminated = roll.terminated
+    if run.cfg.termination == "absorbing" and bool(terminated.any()):
+        next_values, s["reward/absorbing_value"] = absorbing_bootstrap(r, roll.mask, terminated, next_values, run.cfg.gamma)
+        terminated = torch.zeros_like(terminated)  # bootstrapped from the absorbing state's value, like a truncation
+    adv, ret = gae(r, roll.values, next_values, terminated, roll.terminated | roll.truncated, run.cfg.gamma, run.cfg.gae_lambda)
     return roll.with_(rewards=r, advantages=adv, returns=ret), s
+
+
+def absorbing_bootstrap(r: torch.Tensor, mask: torch.Tensor, terminated: torch.Tensor, next_values: torch.Tensor,
+                        gamma: float) -> tuple[torch.Tensor, float]:
+    """``next_values`` with each terminated step's replaced by the value of an absorbing state.
+
+    Imitation rewards have no fixed sign (the critic term is standardised to zero mean, and
+    lambda1 log P(c | b) <= 0), so a return that simply ends at termination pays the policy to
+    fall whenever its rewards run negative.  As in DAC (Kostrikov et al., 2019), the episode
+    goes on in an absorbing state instead; demonstrations that never terminate never show it,
+    so it is paid the lowest step reward of the batch, r_min, forever: V = r_min / (1 - gamma)
+    (with gamma = 1, for as many steps as the rollout has, T r_min).  Staying in the episode
+    then never pays less than leaving it.  Returns the values and V."""
+    if not bool(terminated.any()):
+        return next_values, 0.0
+    r_min = float(r[mask].min())
+    v_abs = r_min * (r.shape[0] if gamma == 1.0 else 1.0 / (1.0 - gamma))
+    return torch.where(terminated, torch.full_like(next_values, v_abs), next_values), v_abs
 
 
 def update_policy(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, float]:
