@@ -1,5 +1,7 @@
-"""What every learner shares: seeding, logging, progress, checkpoints, resume,
-the divergence guard and the run directory's lock.
+"""What every learner shares: the run loop (:class:`RunLoop`: seeding, the run directory's
+lock, config.json, resume, the cadence of evaluation, logging and checkpoints, and the one
+checkpoint schema, :meth:`RunLoop.state`), and the pieces it is made of: logging and
+progress, atomic checkpoints, resume, the divergence guard and the lock.
 
 A run directory holds::
 
@@ -29,7 +31,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
-from pomil.config import saved_config
+from pomil.config import saved_config, to_dict
 from pomil.data import atomic_write
 from pomil.errors import DivergenceError, PomilError, RunBusyError
 
@@ -455,3 +457,138 @@ class RunLogger:
 def write_json(path: str | Path, obj: Any) -> None:
     data = (json.dumps(obj, indent=2, sort_keys=False) + "\n").encode()
     atomic_write(Path(path), lambda f: f.write(data))
+
+
+# -------------------------------------------------------------------- run loop
+class RunLoop:
+    """One run of a learner in its run directory: everything BC, experts and adversarial
+    learners share, so that a learner writes only its networks and its per-iteration update.
+
+    Used as::
+
+        with RunLoop(cfg, algo="bc", resume=resume, hints={...}) as loop:  # device resolved; lock released at the end
+            ...                              # environment / demonstrations
+            gen = loop.seed()                # torch, random, numpy; the generator every sample is drawn from
+            ...                              # networks and optimisers
+            if not loop.start(env=..., nets={"policy": ..., ...}, optimizers={...}):
+                return loop.ckpt_path        # its checkpoint is at the last iteration already
+            return loop.run(update, desc=..., key_stats=...)
+
+    :meth:`start` takes the run directory's lock, restores networks, optimisers and RNGs
+    from the checkpoint under ``--resume`` and writes ``config.json``.  :meth:`run` opens the
+    log and calls ``update(iteration) -> stats``, then, each iteration: the divergence
+    guard's check of every parameter; an evaluation every ``eval_every`` iterations and at
+    the end; a log row every ``log_every`` iterations, at the first and the last, and
+    with every evaluation; a checkpoint every ``checkpoint_every`` iterations and at the end.
+    ``loop.guard`` is the run's divergence guard (it names the last checkpoint written);
+    ``loop.env_steps`` counts the environment steps of a learner that collects them (the
+    update adds its own; ``None`` for one that does not), across resumes.
+    """
+
+    def __init__(self, config: Any, *, algo: str, resume: bool = False, hints: dict[str, str]) -> None:
+        self.config, self.algo, self.resume = config, algo, resume
+        self.dir = Path(config.out)
+        self.ckpt_path = self.dir / "checkpoint.pt"
+        self.device = resolve_device(config.device)
+        self.lock = RunLock(self.dir)
+        self.guard = DivergenceGuard(self.ckpt_path, hints)
+        self.iteration = 0  # the last iteration done: 0, the checkpoint's once resumed, then each one run
+        self.env_steps: int | None = None
+        self.generator = torch.Generator()
+        self.logger: RunLogger | None = None
+        self.env: dict[str, Any] = {}
+        self.nets: dict[str, Any] = {}
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+
+    def __enter__(self) -> "RunLoop":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.lock.release()
+
+    def seed(self) -> torch.Generator:
+        """Seed torch's global RNG (network initialisation); the run's generator (:func:`seed_everything`)."""
+        self.generator = seed_everything(self.config.seed)
+        return self.generator
+
+    def start(self, *, env: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, torch.optim.Optimizer],
+              env_steps: bool = True) -> bool:
+        """Take the lock, resume (under ``--resume``) and write ``config.json``; False when the checkpoint
+        is at the last iteration already (nothing to do: a note says so).
+
+        ``env``: the environment's id, kwargs and observation_mask; ``nets``: every network by name, the
+        policy as ``policy`` (None entries skipped); ``env_steps``: whether the learner counts them."""
+        self.env, self.nets, self.optimizers = env, nets, optimizers
+        self.lock.acquire(self.resume)
+        config = to_dict(self.config)
+        begun = (resume_run(self.ckpt_path, config, nets, optimizers, self.generator, self.device, type(self.config))
+                 if self.resume else RunStart())
+        self.iteration = begun.iteration
+        self.env_steps = begun.env_steps if env_steps else None
+        self.guard.saved(begun.iteration)
+        if begun.iteration == self.config.iterations:
+            print(f"pomil: note: {self.ckpt_path} is already at iteration {begun.iteration}: nothing to do",
+                  file=sys.stderr)
+            return False
+        write_json(self.dir / "config.json", {"algo": self.algo, **config})
+        return True
+
+    def run(self, update: Callable[[int], dict[str, float]], *, desc: str, key_stats: tuple[str, ...] = (),
+            first_row: dict[str, float] | None = None, evaluate: Callable[[Any], dict[str, float]] | None = None,
+            eval_every: int = 0, log_extras: Callable[[], dict[str, float]] | None = None) -> Path:
+        """The iterations after :meth:`start`; returns the checkpoint path.
+
+        A fresh run logs row 0 first: ``first_row`` (a warm start's figures) and the evaluation
+        of the initial policy.  ``evaluate(policy) -> stats``; ``log_extras() -> stats``: figures
+        added to each log row after the wall-clock ones."""
+        cfg = self.config
+        self.logger = logger = RunLogger(self.dir, cfg.iterations, self.iteration, cfg.progress, desc=desc,
+                                         key_stats=key_stats)
+        self.guard.on_stop = logger.close
+        if self.iteration == 0:
+            row = dict(first_row or {})
+            if evaluate is not None:
+                row.update(evaluate(self.nets["policy"]), **{"eval/env_steps": 0.0})
+            if row:
+                logger.log(0, row)
+        t_start = time.perf_counter()
+        for it in range(self.iteration + 1, cfg.iterations + 1):
+            stats = update(it)
+            self.guard.params(it, self.nets)
+            self.iteration = it
+            evaluated = evaluate is not None and eval_every > 0 and (it % eval_every == 0 or it == cfg.iterations)
+            if evaluated:
+                stats.update(evaluate(self.nets["policy"]), **{"eval/env_steps": float(self.env_steps or 0)})
+            if it % cfg.log_every == 0 or it in (1, cfg.iterations) or evaluated:
+                stats.update(self._rates(time.perf_counter() - t_start), **(log_extras() if log_extras else {}))
+                logger.log(it, stats)
+            if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
+                save_run_checkpoint(self.ckpt_path, logger, self.guard, it, self.state())
+            logger.update()
+        logger.close()
+        return self.ckpt_path
+
+    def _rates(self, elapsed: float) -> dict[str, float]:
+        rates = {"time/elapsed_s": elapsed}
+        if self.env_steps is not None:
+            rates["time/env_steps_per_s"] = self.env_steps / max(elapsed, 1e-9)
+        return rates
+
+    def state(self) -> dict[str, Any]:
+        """The checkpoint (version 1) of every learner, less its iteration: ``algo``, ``config``,
+        ``env``, ``policy_arch``, ``policy`` (what :class:`pomil.TrainedPolicy` loads), ``optimizers``
+        and ``rng`` (what ``--resume`` restores); ``nets`` (every network by name) when there is more
+        than the policy; ``obs_norm`` when the policy normalises its observations (experts);
+        ``env_steps`` when the learner counts them."""
+        policy = self.nets["policy"]
+        payload = {"algo": self.algo, "config": to_dict(self.config), "env": self.env,
+                   "policy_arch": policy.arch.to_dict(), "policy": policy.state_dict()}
+        if set(self.nets) != {"policy"}:
+            payload["nets"] = {k: net.state_dict() for k, net in self.nets.items() if net is not None}
+        if self.nets.get("obs_norm") is not None:
+            payload["obs_norm"] = self.nets["obs_norm"].state_dict()
+        payload["optimizers"] = {k: opt.state_dict() for k, opt in self.optimizers.items()}
+        payload["rng"] = rng_state(self.generator)
+        if self.env_steps is not None:
+            payload["env_steps"] = self.env_steps
+        return payload

@@ -45,7 +45,7 @@ import torch.nn.functional as F
 
 from pomil.algos.bc import MixtureAssignment, bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
 from pomil.api import TrainedPolicy
-from pomil.config import RunConfig, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
@@ -57,10 +57,7 @@ from pomil.rl.gae import gae
 from pomil.rl.collect import collect
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
-from pomil.training import (
-    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
-    save_run_checkpoint, seed_everything, write_json,
-)
+from pomil.training import DivergenceGuard, RunLoop, lr_hint
 
 LEARNER_KINDS = {  # what each learner is made of
     "gail": {"encoder": "mlp", "codes": False, "critic_objective": "gan"},
@@ -529,7 +526,6 @@ class PhaseClock:
 
     def __init__(self, *phases: str) -> None:
         self.spent = dict.fromkeys(phases, 0.0)
-        self.t_start = time.perf_counter()
 
     @contextmanager
     def __call__(self, phase: str) -> Iterator[None]:
@@ -539,19 +535,9 @@ class PhaseClock:
         finally:
             self.spent[phase] += time.perf_counter() - t0
 
-    def rates(self, env_steps: int) -> dict[str, float]:
-        elapsed = time.perf_counter() - self.t_start
-        return {"time/elapsed_s": elapsed, "time/env_steps_per_s": env_steps / max(elapsed, 1e-9)}
-
     def shares(self) -> dict[str, float]:
         total = max(sum(self.spent.values()), 1e-9)
         return {f"time/share_{k}": v / total for k, v in self.spent.items()}
-
-
-def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
-    """Train (or continue) an adversarial run; returns the checkpoint path."""
-    with RunLock(cfg.out) as lock:
-        return _train_adversarial(cfg, resume, lock)
 
 
 def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
@@ -575,91 +561,57 @@ def _environment(cfg: AdversarialConfig, device: torch.device):
     return demos, env_info, evaluate, env, executed_actions_fn(env_id, env_kwargs)
 
 
-def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> Path:
+def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
+    """Train (or continue) an adversarial run; returns the checkpoint path."""
     if not cfg.demos:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
-    run_dir, device = Path(cfg.out), resolve_device(cfg.device)
-    ckpt_path = run_dir / "checkpoint.pt"
-    demos, env_info, evaluate, env, execute = _environment(cfg, device)
-    num_codes = resolve_num_codes(cfg, demos)
-    gen = seed_everything(cfg.seed)
-    m, arch = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, device)
-    opt = build_optimizers(cfg, m)
-    nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
-    if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
-        print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch has "
-              f"{cfg.num_envs} minibatches of one episode", file=sys.stderr)
-    lock.acquire(resume)
-    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device, AdversarialConfig) if resume else RunStart()
-    if resumed.iteration == cfg.iterations:
-        print(f"pomil: note: {ckpt_path} is already at iteration {resumed.iteration}: nothing to do", file=sys.stderr)
-        return ckpt_path
-    write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
-    expert = demos.padded(device)
-    expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
-    run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
-                         shift_actions(expert.actions), execute, num_codes,
-                         DivergenceGuard(ckpt_path, divergence_hints(cfg), resumed.iteration))
-    init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard)
-                  if resumed.iteration == 0 and cfg.bc_init_iterations > 0 else {})
-    run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
-    logger = RunLogger(run_dir, cfg.iterations, resumed.iteration, cfg.progress, desc=cfg.learner, key_stats=KEY_STATS)
-    run.guard.on_stop = logger.close
-    if resumed.iteration == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
-        if evaluate is not None:
-            init_stats.update(evaluate(m.policy), **{"eval/env_steps": 0.0})
-        if init_stats:
-            logger.log(0, init_stats)
-    _loop(run, env, evaluate, logger, resumed, device,
-          lambda it, steps: _checkpoint(run, ckpt_path, logger, env_info, arch, nets, it, steps))
-    return ckpt_path
+    with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
+        demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
+        num_codes = resolve_num_codes(cfg, demos)
+        gen = loop.seed()
+        m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, loop.device)
+        opt = build_optimizers(cfg, m)
+        if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
+            print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch "
+                  f"has {cfg.num_envs} minibatches of one episode", file=sys.stderr)
+        nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
+        if not loop.start(env=env_info, nets=nets, optimizers=opt):
+            return loop.ckpt_path
+        expert = demos.padded(loop.device)
+        expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
+        run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
+                             shift_actions(expert.actions), execute, num_codes, loop.guard)
+        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard)
+                      if loop.iteration == 0 and cfg.bc_init_iterations > 0 else {})
+        run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
+        clock = PhaseClock("rollout", "critic", "posterior", "ppo")
+        return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
+                        first_row=init_stats, evaluate=evaluate, eval_every=cfg.eval_every,
+                        log_extras=lambda: {"policy/log_std": m.policy.log_std.mean().item(), **clock.shares()})
 
 
 KEY_STATS = ("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein")
 
 
-def _loop(run: AdversarialRun, env: Any, evaluate: Callable[[GaussianPolicy], dict[str, float]] | None,
-          logger: RunLogger, resumed: RunStart, device: torch.device, checkpoint: Callable[[int, int], None]) -> None:
-    """The iterations: collect, critic, posterior, rewards, policy, then evaluation, logging and checkpoints."""
+def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, it: int) -> dict[str, float]:
+    """One iteration's phases: collect, critic, posterior, rewards and policy (the run loop evaluates,
+    logs and checkpoints)."""
     cfg, m = run.cfg, run.m
-    clock = PhaseClock("rollout", "critic", "posterior", "ppo")
-    steps_done = resumed.env_steps  # eval/env_steps counts the whole run, across resumes
-    for it in range(resumed.iteration + 1, cfg.iterations + 1):
-        with clock("rollout"):
-            roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
-                                                               run.gen, device, cfg.rollout_threads)
-            stats = {"env/true_return": env_rewards.sum(0).mean().item()}
-            run.check(it, "environment reward", stats["env/true_return"])
-            steps_done += roll.num_steps * roll.num_envs
-        with clock("critic"):
-            stats.update(update_critic(run, roll, it))
-        with clock("posterior"):
-            stats.update(update_posterior(run, roll, code_idx, it))
-        with clock("ppo"):
-            roll, s = with_rewards(run, roll, code_idx, next_values, it)
-            stats.update(s)
-            stats.update(update_policy(run, roll, it))
-            run.guard.params(it, {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior})
-        if evaluate is not None and (it % cfg.eval_every == 0 or it == cfg.iterations):
-            stats.update(evaluate(m.policy))
-            stats["eval/env_steps"] = float(steps_done)
-        if it % cfg.log_every == 0 or it in (1, cfg.iterations) or any(k.startswith("eval/") for k in stats):
-            stats.update(clock.rates(steps_done), **{"policy/log_std": m.policy.log_std.mean().item()})
-            stats.update(clock.shares())
-            logger.log(it, stats)
-        if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
-            checkpoint(it, steps_done)
-        logger.update()
-    logger.close()
-
-
-def _checkpoint(run: AdversarialRun, path: Path, logger: RunLogger, env_info: dict[str, Any], arch: PolicyArch,
-                nets: dict[str, torch.nn.Module | None], iteration: int, env_steps: int) -> None:
-    save_run_checkpoint(path, logger, run.guard, iteration, {
-        "algo": run.cfg.learner, "config": to_dict(run.cfg), "env": env_info, "policy_arch": arch.to_dict(),
-        "policy": run.m.policy.state_dict(), "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
-        "optimizers": {k: o.state_dict() for k, o in run.opt.items()}, "rng": rng_state(run.gen), "env_steps": env_steps,
-    })
+    with clock("rollout"):
+        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
+                                                           run.gen, loop.device, cfg.rollout_threads)
+        stats = {"env/true_return": env_rewards.sum(0).mean().item()}
+        run.check(it, "environment reward", stats["env/true_return"])
+        loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
+    with clock("critic"):
+        stats.update(update_critic(run, roll, it))
+    with clock("posterior"):
+        stats.update(update_posterior(run, roll, code_idx, it))
+    with clock("ppo"):
+        roll, s = with_rewards(run, roll, code_idx, next_values, it)
+        stats.update(s)
+        stats.update(update_policy(run, roll, it))
+    return stats
 
 
 def policy_and_demo_features(policy: GaussianPolicy, b: Rollout, demo: PaddedEpisodes,
