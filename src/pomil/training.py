@@ -118,10 +118,12 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except Exception as err:  # torch raises many types for foreign/corrupt files
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise PomilError(f"{path}: not a pomil checkpoint ({first[:160]})") from None
-    if not isinstance(payload, dict) or not isinstance(payload.get("format"), str) or payload["format"] != CHECKPOINT_FORMAT:
+    if not isinstance(payload, dict) or not isinstance(payload.get("format"),
+                                                       str) or payload["format"] != CHECKPOINT_FORMAT:
         raise PomilError(f"{path}: not a pomil checkpoint (missing 'format: {CHECKPOINT_FORMAT}')")
     if type(payload.get("version")) is not int or payload["version"] != CHECKPOINT_VERSION:
-        raise PomilError(f"{path}: checkpoint version {payload.get('version')} is not supported (expected {CHECKPOINT_VERSION})")
+        raise PomilError(f"{path}: checkpoint version {payload.get('version')} is not supported (expected "
+                         f"{CHECKPOINT_VERSION})")
     bad = first_nonfinite({k: v for k, v in payload.items() if k != "config"})
     if bad is not None:
         raise PomilError(f"{path}: '{bad}' holds NaN/inf (the run that wrote it diverged); "
@@ -147,7 +149,8 @@ def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str 
         raise TypeError("config")
     if config_class is not None:
         saved = saved_config(config_class, saved)
-    changed = sorted(k for k in set(config) | set(saved) if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
+    changed = sorted(k for k in set(config) | set(saved)
+                     if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
     if changed:
         raise PomilError(f"{path}: cannot resume with a different config (changed: {', '.join(changed)})")
 
@@ -183,7 +186,8 @@ def resume_run(
     if not isinstance(done, int) or isinstance(done, bool) or done < 0:
         raise PomilError(f"{ckpt_path}: checkpoint has no usable 'iteration' (got {done!r})")
     if config.get("iterations", done) < done:
-        raise PomilError(f"{ckpt_path}: the checkpoint is at iteration {done}, past --iterations {config['iterations']}; "
+        raise PomilError(f"{ckpt_path}: the checkpoint is at iteration {done}, past --iterations "
+                         f"{config['iterations']}; "
                          f"nothing to resume (pass --iterations above {done} to continue; the checkpoint is unchanged)")
     try:
         saved_nets = ckpt.get("nets", {"policy": ckpt.get("policy")})
@@ -293,7 +297,8 @@ class DivergenceGuard:
         hint = self.hints.get(quantity.split()[0], "")
         lower = ("a lower " + hint.split(" (")[0]) if hint.count("(now") == 1 else "lower learning rates"
         if self.saved_iteration > 0 and self.ckpt_path.exists():
-            after = f"{self.ckpt_path} (iteration {self.saved_iteration}) is unchanged: continue it with --resume and {lower}"
+            after = (f"{self.ckpt_path} (iteration {self.saved_iteration}) is unchanged: "
+                     f"continue it with --resume and {lower}")
         else:
             after = f"no checkpoint of this run was written: start it again with {lower}"
         raise DivergenceError(f"{where}: {quantity} is {bad} (the run diverged); "
@@ -362,7 +367,8 @@ class RunLock:
         if previous:
             what = ("continuing from its last checkpoint" if resume else
                     "starting over (--resume would continue from its last checkpoint)")
-            print(f"pomil: note: {self.path} was left by pid {previous.get('pid', '?')} on {previous.get('host', '?')}, "
+            print(f"pomil: note: {self.path} was left by pid {previous.get('pid', '?')} on "
+                  f"{previous.get('host', '?')}, "
                   f"which is no longer running; taking it over and {what}", file=sys.stderr)
 
     @staticmethod

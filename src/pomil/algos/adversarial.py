@@ -267,7 +267,8 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
 
 
 # -------------------------------------------------------------- critic, posterior
-def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy, execute: Callable[[torch.Tensor], torch.Tensor],
+def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy,
+                         execute: Callable[[torch.Tensor], torch.Tensor],
                          gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """(actions, prev_actions) of the demonstrations with the policy's current action noise added.
 
@@ -299,7 +300,8 @@ def critic_loss(
         stats = {"critic/wasserstein": w.item()}
     else:
         loss = (masked_mean(F.binary_cross_entropy_with_logits(f_exp, torch.ones_like(f_exp), reduction="none"), e_mask)
-                + masked_mean(F.binary_cross_entropy_with_logits(f_pol, torch.zeros_like(f_pol), reduction="none"), policy.mask))
+                + masked_mean(F.binary_cross_entropy_with_logits(f_pol, torch.zeros_like(f_pol), reduction="none"),
+                              policy.mask))
         stats = {"critic/expert_prob": masked_mean(torch.sigmoid(f_exp), e_mask).item(),
                  "critic/policy_prob": masked_mean(torch.sigmoid(f_pol), policy.mask).item()}
     if gp_weight > 0:
@@ -307,12 +309,14 @@ def critic_loss(
         t = min(e_obs.shape[0], policy.num_steps)
         alpha = torch.rand(1, b, 1, device=e_obs.device)
         mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
-        obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.executed_actions)
+        obs_i, prev_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions)
+        act_i = mix(e_act, policy.executed_actions)
         with torch.backends.cudnn.flags(enabled=False):  # cuDNN's GRU has no double backward; the penalty needs one
             f_i = score(obs_i, prev_i, act_i, e_starts[:t, :b])
         inputs = (obs_i, prev_i, act_i)
         grads = torch.autograd.grad(f_i.sum(), inputs, create_graph=True, allow_unused=True)  # MLPs ignore prev
-        norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)], dim=-1).norm(dim=-1)
+        norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)],
+                         dim=-1).norm(dim=-1)
         gp = ((norm - 1) ** 2).mean()
         loss = loss + gp_weight * gp
         stats["critic/gradient_penalty"] = gp.item()
@@ -320,13 +324,16 @@ def critic_loss(
     return loss, stats
 
 
-def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+def posterior_loss(post: BeliefHead, batch: Rollout,
+                   code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked cross-entropy of each step's code; code_idx_steps (T, B)."""
-    return _code_cross_entropy(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts, batch.mask,
+    return _code_cross_entropy(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts,
+                               batch.mask,
                                code_idx_steps)
 
 
-def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, mask, code_idx_steps) -> tuple[torch.Tensor, dict[str, float]]:
+def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, mask,
+                        code_idx_steps) -> tuple[torch.Tensor, dict[str, float]]:
     logits, _ = post.unroll(obs, prev_actions, post.initial_state(obs.shape[1], obs.device), starts, extra=actions)
     ce = F.cross_entropy(logits.flatten(0, 1), code_idx_steps.flatten(), reduction="none").view_as(code_idx_steps)
     loss = masked_mean(ce, mask)
@@ -354,7 +361,8 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
 
 
 # ---------------------------------------------------------------------- train
-def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int, device) -> tuple[Modules, PolicyArch]:
+def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
+                  device: torch.device | str) -> tuple[Modules, PolicyArch]:
     preset = LEARNER_KINDS[cfg.learner]
     enc = preset["encoder"]
     arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean)
@@ -637,7 +645,8 @@ def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_pr
 
 
 def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
-                  cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None) -> dict[str, float]:
+                  cfg: AdversarialConfig, gen: torch.Generator,
+                  guard: DivergenceGuard | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
 
     Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
@@ -664,8 +673,9 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
         starts = first_step_starts(expert.mask)
         for _ in range(cfg.posterior_init_iterations):
             idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
-            loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
-                                          starts[:, idx], expert.mask[:, idx], codes[idx].expand(expert.mask.shape[0], -1))
+            loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx],
+                                          expert.actions[:, idx], starts[:, idx], expert.mask[:, idx],
+                                          codes[idx].expand(expert.mask.shape[0], -1))
             if guard is not None:
                 guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
             post_opt.zero_grad(set_to_none=True)
@@ -675,7 +685,8 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
-def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any], demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
+def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
+                   demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
     """The periodic evaluation of a run: mode metrics on circles, per-task figures
     on multi-task demonstrations (``pomil demos hopper``); None otherwise (see ``pomil.envs.evaluation_kind``)."""
     kind = evaluation_kind(env_info["id"], demos.metadata) if cfg.eval_every else None
@@ -687,7 +698,8 @@ def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any], demos: Demo
         def measure(tp: TrainedPolicy) -> dict[str, float]:
             metrics, _ = evaluate_circles(tp, cfg.eval_episodes, seed=12345)
             return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
-                    "eval/modes_covered": float(metrics["modes_covered"]), "eval/none_share": metrics["overall_none_share"]}
+                    "eval/modes_covered": float(metrics["modes_covered"]),
+                    "eval/none_share": metrics["overall_none_share"]}
     else:
         from pomil.eval.tasks import evaluate_tasks, reference_of
 

@@ -42,7 +42,8 @@ class BCConfig(RunConfig):
 
 
 def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor,
-            prev_actions: torch.Tensor | None = None, codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+            prev_actions: torch.Tensor | None = None,
+            codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked mean negative log-likelihood over a (T, B) block of whole episodes.
 
     ``prev_actions`` (a_{t-1} as the environment carried it out) defaults to
@@ -51,9 +52,11 @@ def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, ma
     return _nll(policy, policy.dist(feats, codes), actions, mask)
 
 
-def episode_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def episode_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor,
+                     mask: torch.Tensor) -> torch.Tensor:
     """The policy's encoder over a (T, B) block of whole episodes, from a zero state."""
-    return policy.features(obs, prev_actions, policy.initial_state(mask.shape[1], mask.device), first_step_starts(mask))[0]
+    return policy.features(obs, prev_actions, policy.initial_state(mask.shape[1], mask.device),
+                           first_step_starts(mask))[0]
 
 
 def first_step_starts(mask: torch.Tensor) -> torch.Tensor:
@@ -63,7 +66,8 @@ def first_step_starts(mask: torch.Tensor) -> torch.Tensor:
     return starts
 
 
-def _nll(policy: GaussianPolicy, dist, actions: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+def _nll(policy: GaussianPolicy, dist, actions: torch.Tensor,
+         mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     m = mask.to(actions.dtype)
     nll = -(dist.log_prob(actions).sum(-1) * m).sum() / m.sum()
     mse = (((dist.mean - actions) ** 2).sum(-1) * m).sum() / m.sum()
@@ -97,7 +101,8 @@ class MixtureAssignment:
     def update(self, policy: GaussianPolicy) -> torch.Tensor:
         """The current responsibilities (K, E), recomputed on every ``refresh``-th call."""
         if self.responsibilities is None or self._calls % self.refresh == 0:
-            self.responsibilities = balanced_responsibilities(episode_log_likelihoods(policy, self.data, self.prev_actions, self.chunk))
+            self.responsibilities = balanced_responsibilities(episode_log_likelihoods(policy, self.data,
+                                                                                      self.prev_actions, self.chunk))
         self._calls += 1
         return self.responsibilities
 
@@ -160,7 +165,8 @@ def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: Padd
     return stats
 
 
-def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes,
+                    prev_actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
     """Behaviour cloning of unlabelled episodes by a mixture of the policy's K codes (EM).
 
     Each episode's log-likelihood under each code, L_k = sum_t log pi(a_t | b_t, k), gives

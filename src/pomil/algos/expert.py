@@ -44,9 +44,12 @@ class ExpertConfig(RunConfig):
         "paper", "paper: 128-step episodes that do not end when unhealthy; standard: the environment's own episodes")
     env_kwargs: tuple[str, ...] = option((), "more constructor keywords as key=value (JSON values), applied after task "
                                              "and setting, e.g. ctrl_cost_weight=0.05,max_episode_steps=200")
-    observation_mask: str = option("", "what the expert observes: '' (everything), positions-only, or comma-separated indices")
+    observation_mask: str = option("",
+                                   "what the expert observes: '' (everything), positions-only, or comma-separated "
+                                   "indices")
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
+    iterations: int = option(200,
+                             "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
                              within="[1, inf)")
     num_envs: int = option(64, "environment copies stepped together", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
