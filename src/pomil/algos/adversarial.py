@@ -88,37 +88,48 @@ LEARNER_KINDS = {  # what each learner is made of
 #   run ~2x faster per env step than with 64.
 @dataclass(frozen=True)
 class AdversarialConfig(RunConfig):
-    learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp", "which learner (set by the subcommand)")
+    learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp",
+                                                                    "which learner (set by the subcommand)")
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    preset: Literal["default", "paper-text"] = option("default", "named settings under the config file and flags: default "
-                                                      "(pomil's measured recipe) or paper-text (the paper's text, see PRESETS)")
+    preset: Literal["default", "paper-text"] = option("default",
+                                                      "named settings under the config file and flags: default "
+                                                      "(pomil's measured recipe) or paper-text (the paper's text, see "
+                                                      "PRESETS)")
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO)", within="[1, inf)")
     num_envs: int = option(256, "episodes collected per iteration", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
-    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)",
+    num_codes: int = option(-1,
+                            "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by "
+                            "gail)",
                             within="[-1, inf)")
     hidden_size: int = option(128, "dense width and GRU cells of every network", within="[1, inf)")
     lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
-    shared_value_encoder: bool = option(False, "value head on the policy's encoder instead of its own (measured: see docs/method.md)")
+    shared_value_encoder: bool = option(False,
+                                        "value head on the policy's encoder instead of its own (measured: see "
+                                        "docs/method.md)")
     lr_critic: float = option(5e-4, "critic learning rate", within="(0, inf)")
     lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("adam", "adam (the paper's code) or rmsprop (its text)")
     critic_steps: int = option(3, "critic updates per iteration", within="[1, inf)")
     critic_batch: int = option(64, "expert and policy episodes per critic update", within="[1, inf)")
-    expert_action_noise: bool = option(False, "add the policy's current action noise to the demonstrations' actions the critic "
-                                       "sees, so that it cannot tell deterministic experts from the policy by action jitter")
-    weight_clip: float = option(0.0, "clip Wasserstein critic weights to +-this after each update (0: off; the paper's text: "
-                                     "0.01; never for GAIL's GAN critic)", within="[0, inf)")
-    gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam", within="[0, inf)")
+    expert_action_noise: bool = option(False,
+                                       "add the policy's current action noise to the demonstrations' actions the "
+                                       "critic sees, so that it cannot tell deterministic experts from the policy by "
+                                       "action jitter")
+    weight_clip: float = option(0.0, "clip Wasserstein critic weights to +-this after each update (0: off; the "
+                                     "paper's text: 0.01; never for GAIL's GAN critic)", within="[0, inf)")
+    gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam",
+                                     within="[0, inf)")
     posterior_steps: int = option(1, "posterior updates per iteration", within="[1, inf)")
     mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)",
                               within="[0, inf)")
     ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
     vf_coef: float = option(0.5, "weight of the value loss in the PPO loss", within="[0, inf)")
-    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update", within="(0, inf)")
+    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update",
+                                  within="(0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
     gamma: float = option(0.99, "discount", within="(0, 1]")
     gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
@@ -126,28 +137,37 @@ class AdversarialConfig(RunConfig):
     value_clip: float = option(0.0, "PPO value clip (0: off)", within="[0, inf)")
     ppo_epochs: int = option(2, "PPO epochs per iteration", within="[1, inf)")
     minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
-    update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
+    update_mode: Literal["sequence", "window"] = option("sequence",
+                                                        "recurrent updates: whole sequences or random windows from a "
+                                                        "zero state")
     window_length: int = option(8, "steps per window in window mode", within="[1, inf)")
     bc_init_iterations: int = option(3000, "behaviour-cloning steps on the demonstrations before adversarial training "
                                            "(the warm start; 0: off)", within="[0, inf)")
     bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start", within="(0, inf)")
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
-    bc_init_codes: Literal["random", "mixture"] = option("mixture", "codes in the warm start: random per episode (InfoGAIL), or "
-                                                         "mixture: each code clones its own cluster of episodes (mixture likelihood)")
-    mixture_balance: Literal["dataset", "batch"] = option("dataset", "with bc_init_codes mixture: every code takes 1/K of "
-                                                          "all demonstration episodes (dataset, refreshed every 10 steps or pass) or "
-                                                          "of each random batch (batch: noisier, see MixtureAssignment)")
+    bc_init_codes: Literal["random", "mixture"] = option("mixture",
+                                                         "codes in the warm start: random per episode (InfoGAIL), or "
+                                                         "mixture: each code clones its own cluster of episodes "
+                                                         "(mixture likelihood)")
+    mixture_balance: Literal["dataset", "batch"] = option("dataset",
+                                                          "with bc_init_codes mixture: every code takes 1/K of "
+                                                          "all demonstration episodes (dataset, refreshed every 10 "
+                                                          "steps or pass) or of each random batch (batch: noisier, "
+                                                          "see MixtureAssignment)")
     posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
                                                  "each episode labelled with its most likely code", within="[0, inf)")
     log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
-    bc_weight: float = option(10.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
+    bc_weight: float = option(10.0,
+                              "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
                                     "policy's PPO loss (keeps the policy near the demonstrations; 0: off)",
                                     within="[0, inf)")
     policy_warmup_iterations: int = option(5, "first iterations in which only the critic, posterior and value learn "
                                               "(the warm-started policy waits for a trained value and critic)",
                                               within="[0, inf)")
-    eval_every: int = option(5, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)",
+    eval_every: int = option(5,
+                             "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos "
+                             "(0: off)",
                              within="[0, inf)")
     eval_episodes: int = option(10, "evaluation rollouts per code", within="[1, inf)")
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
@@ -169,7 +189,8 @@ class AdversarialConfig(RunConfig):
     def __post_init__(self) -> None:
         super().__post_init__()  # every field in its interval (see the option declarations)
         if self.num_codes in (0, 1):
-            raise ConfigError(f"config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got {self.num_codes}")
+            raise ConfigError("config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got "
+                              f"{self.num_codes}")
 
 
 @dataclass
@@ -342,18 +363,22 @@ def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, ma
 
 
 @torch.no_grad()
-def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig, objective: str) -> tuple[torch.Tensor, dict[str, float]]:
+def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig,
+            objective: str) -> tuple[torch.Tensor, dict[str, float]]:
     dev = roll.starts.device
-    f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev), roll.starts, extra=roll.executed_actions)
+    f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev),
+                           roll.starts, extra=roll.executed_actions)
     adv = f if objective == "wasserstein" else F.softplus(f)
     stats = {"reward/critic_raw_mean": adv.mean().item(), "reward/critic_raw_std": adv.std().item()}
     if cfg.normalize_reward:
         adv = normalize(adv, roll.mask)
     r = adv
     if m.posterior is not None:
-        logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions, m.posterior.initial_state(roll.num_envs, dev),
+        logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions,
+                                       m.posterior.initial_state(roll.num_envs, dev),
                                        roll.starts, extra=roll.executed_actions)
-        logq = torch.log_softmax(logits, -1).gather(-1, code_idx.view(1, -1, 1).expand(logits.shape[0], -1, 1)).squeeze(-1)
+        code_steps = code_idx.view(1, -1, 1).expand(logits.shape[0], -1, 1)
+        logq = torch.log_softmax(logits, -1).gather(-1, code_steps).squeeze(-1)
         r = r + cfg.mi_weight * logq
         stats["reward/log_posterior"] = logq.mean().item()
     stats["reward/total"] = r.mean().item()
