@@ -37,12 +37,14 @@ def main() -> None:
         print(f"{'learner':16s} {'env-steps/s':>12s} {'rollout':>8s} {'critic':>8s} {'posterior':>9s} {'ppo':>6s}")
         for learner in ADVERSARIAL:
             out = Path(tmp) / learner
-            cfg = adversarial_config(CirclesReproConfig(demos=demos, adversarial_iterations=args.iterations, progress=False),
+            cfg = adversarial_config(CirclesReproConfig(demos=demos, adversarial_iterations=args.iterations,
+                                                        progress=False),
                                      learner, 0, out)
             train_adversarial(replace(cfg, eval_every=0, bc_init_iterations=0, update_mode=args.update_mode))
             last = list(csv.DictReader(open(out / "metrics.csv")))[-1]
             share = lambda k: float(last[f"time/share_{k}"])  # noqa: E731
-            print(f"{learner:16s} {float(last['time/env_steps_per_s']):12,.0f} {share('rollout'):8.0%} {share('critic'):8.0%} "
+            print(f"{learner:16s} {float(last['time/env_steps_per_s']):12,.0f} {share('rollout'):8.0%} "
+                  f"{share('critic'):8.0%} "
                   f"{share('posterior'):9.0%} {share('ppo'):6.0%}")
 
 

@@ -49,22 +49,27 @@ def main() -> None:
             runs = []
             for seed in range(args.seeds):
                 base = adversarial_config(repro, "infogail-pomdp", seed, Path(tmp) / value / str(seed))
-                cfg = replace(from_dict(AdversarialConfig, {**base.__dict__, key: value}, source="--vary"), eval_every=0)
+                cfg = replace(from_dict(AdversarialConfig, {**base.__dict__, key: value}, source="--vary"),
+                              eval_every=0)
                 t0 = time.perf_counter()
                 ckpt = train_adversarial(cfg)
                 wall = time.perf_counter() - t0
                 last = list(csv.DictReader(open(Path(cfg.out) / "metrics.csv")))[-1]
                 m, _ = evaluate_circles(TrainedPolicy.load(ckpt), 100, seed=1000 + seed)
-                runs.append({"seed": seed, "nmi": m["nmi"], "min_purity": m["min_purity"], "none_share": m["overall_none_share"],
+                runs.append({"seed": seed, "nmi": m["nmi"], "min_purity": m["min_purity"],
+                             "none_share": m["overall_none_share"],
                              "wall_s": wall, "env_steps_per_s": float(last["time/env_steps_per_s"])})
                 print(f"{key}={value} seed {seed}: NMI {m['nmi']:.2f} min purity {m['min_purity']:.2f} "
                       f"none {m['overall_none_share']:.2f} {wall:.0f} s", flush=True)
-            results["values"][value] = {"runs": runs, **{k: [float(np.mean([r[k] for r in runs])), float(np.std([r[k] for r in runs]))]
+            results["values"][value] = {"runs": runs,
+                                        **{k: [float(np.mean([r[k] for r in runs])),
+                                               float(np.std([r[k] for r in runs]))]
                                                          for k in KEYS}}
     print(f"\n{key:22s} {'NMI':>12s} {'min purity':>12s} {'none share':>12s} {'env-steps/s':>12s}")
     for value, r in results["values"].items():
         f = lambda k: f"{r[k][0]:.2f} ± {r[k][1]:.2f}"  # noqa: E731
-        print(f"{value:22s} {f('nmi'):>12s} {f('min_purity'):>12s} {f('none_share'):>12s} {r['env_steps_per_s'][0]:12,.0f}")
+        print(f"{value:22s} {f('nmi'):>12s} {f('min_purity'):>12s} {f('none_share'):>12s} "
+              f"{r['env_steps_per_s'][0]:12,.0f}")
     write_json(Path(args.out or f"results/circles/variants-{key}.json"), results)
 
 

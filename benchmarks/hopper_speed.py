@@ -59,35 +59,43 @@ def last_row(run: Path) -> dict[str, str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--num-envs", type=int, default=AdversarialConfig.num_envs, help="environment copies for 1, 2 and 5")
+    ap.add_argument("--num-envs", type=int, default=AdversarialConfig.num_envs,
+                    help="environment copies for 1, 2 and 5")
     ap.add_argument("--iterations", type=int, default=3, help="training iterations timed for 4 and 5")
     ap.add_argument("--demos", default="data/hopper-paper.npz")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--train-envs", default="", help="comma-separated env counts for 5 (default: --num-envs)")
-    ap.add_argument("--rollout-threads", default="1", help="comma-separated rollout_threads settings for 5 (0: torch's own)")
+    ap.add_argument("--rollout-threads", default="1",
+                    help="comma-separated rollout_threads settings for 5 (0: torch's own)")
     args = ap.parse_args()
     n = args.num_envs
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
     settings = [int(v) for v in args.rollout_threads.split(",")]
     kw = hopper_kwargs("forward", "paper")
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
-    print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, device {args.device} ({gpu})")
+    print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, "
+          f"device {args.device} ({gpu})")
     rows = [("batched simulator (HopperSim)", batched_speed(HopperSim(n, kw), 256)),
             (f"gymnasium SyncVectorEnv x{n}", gym_vector_speed(HOPPER_ID, kw, n, 64)),
             ("gymnasium.make, one env", gym_single_speed(4000))]
     share_lines: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
-        train_expert(ExpertConfig(out=f"{tmp}/expert", iterations=args.iterations, progress=False, log_every=1, device=args.device))
-        rows.append(("expert PPO training (64 envs, MLP)", float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
+        train_expert(ExpertConfig(out=f"{tmp}/expert", iterations=args.iterations, progress=False, log_every=1,
+                                  device=args.device))
+        rows.append(("expert PPO training (64 envs, MLP)",
+                     float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
         for m in train_envs:
             for threads in settings:
                 run = Path(tmp) / f"ip{m}-{threads}"
                 values = {"learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
-                          "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0,
-                          "log_every": 1, "progress": False, "device": args.device, "num_envs": m, "rollout_threads": threads}
+                          "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0,
+                          "eval_every": 0,
+                          "log_every": 1, "progress": False, "device": args.device, "num_envs": m,
+                          "rollout_threads": threads}
                 train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
                 row = last_row(run)
-                what = f"InfoGAIL-POMDP training ({m} envs, all updates{f', rollout_threads {threads}' if len(settings) > 1 else ''})"
+                threads_note = f", rollout_threads {threads}" if len(settings) > 1 else ""
+                what = f"InfoGAIL-POMDP training ({m} envs, all updates{threads_note})"
                 rows.append((what, float(row["time/env_steps_per_s"])))
                 shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
                 share_lines.append(f"time shares, {what}: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))

@@ -88,8 +88,10 @@ def tiny_runs(out: Path) -> dict[str, tuple[str, Any]]:
         "hopper-infogail-pomdp": ("infogail-pomdp", AdversarialConfig(
             learner="infogail-pomdp", demos=hopper, out=str(out / "h"), eval_every=2, eval_episodes=1,
             policy_warmup_iterations=1, **tiny)),
-        "circles-bc": ("bc", BCConfig(demos=circles, out=str(out / "b"), iterations=20, seed=0, progress=False, log_every=5)),
-        "hopper-expert": ("expert", ExpertConfig(out=str(out / "e"), iterations=2, num_envs=4, ppo_epochs=2, minibatches=4,
+        "circles-bc": ("bc",
+                       BCConfig(demos=circles, out=str(out / "b"), iterations=20, seed=0, progress=False, log_every=5)),
+        "hopper-expert": ("expert",
+                          ExpertConfig(out=str(out / "e"), iterations=2, num_envs=4, ppo_epochs=2, minibatches=4,
                                                  seed=0, progress=False, log_every=1)),
     }
 

@@ -9,7 +9,8 @@ from pomil.nn.policy import GaussianPolicy, PolicyArch
 
 def _policy(num_codes=0, encoder="gru"):
     torch.manual_seed(0)
-    return TrainedPolicy(GaussianPolicy(PolicyArch(2, 2, encoder, 16, num_codes)), "test", {"id": "pomil/Circles-v0", "kwargs": {}})
+    return TrainedPolicy(GaussianPolicy(PolicyArch(2, 2, encoder, 16, num_codes)), "test",
+                         {"id": "pomil/Circles-v0", "kwargs": {}})
 
 
 def test_act_numpy_in_numpy_out_and_seeded_sampling_repeats():
@@ -149,9 +150,12 @@ def test_nan_observations_are_refused_under_python_O(tmp_path):
     import subprocess
     import sys
 
-    code = ("import numpy as np, torch; from pomil.api import TrainedPolicy; from pomil.nn.policy import GaussianPolicy, "
-            "PolicyArch\np = TrainedPolicy(GaussianPolicy(PolicyArch(2, 2, 'gru', 8, 2)), 't', {'id': 'pomil/Circles-v0'})\n"
-            "p.reset(2, seed=0)\ntry:\n    p.act(np.array([[0, 0], [np.nan, 0]], np.float32))\nexcept ValueError as e:\n"
+    code = ("import numpy as np, torch; from pomil.api import TrainedPolicy; from pomil.nn.policy import "
+            "GaussianPolicy, "
+            "PolicyArch\np = TrainedPolicy(GaussianPolicy(PolicyArch(2, 2, 'gru', 8, 2)), 't', {'id': "
+            "'pomil/Circles-v0'})\n"
+            "p.reset(2, seed=0)\ntry:\n    p.act(np.array([[0, 0], [np.nan, 0]], np.float32))\nexcept ValueError as "
+            "e:\n"
             "    print('refused:', e)\ntry:\n    p.reset(0)\nexcept ValueError as e:\n    print('refused:', e)\n")
     src = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "src")
     r = subprocess.run([sys.executable, "-O", "-c", code], capture_output=True, text=True, timeout=120,

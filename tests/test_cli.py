@@ -8,7 +8,8 @@ from pomil.cli import build_parser, main
 
 
 def pomil(*args):
-    return subprocess.run([sys.executable, "-m", "pomil.cli", *map(str, args)], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-m", "pomil.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=300)
 
 
 def test_cli_smoke_demos_train_evaluate_plot(tmp_path):
@@ -53,7 +54,8 @@ def test_config_file_sets_options_and_unknown_keys_list_the_valid_ones(tmp_path,
     (["evaluate", "nope.pt"], "no such checkpoint"),
 ])
 def test_bad_options_are_one_line_errors(args, text, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "pomil.cli", *args], capture_output=True, text=True, cwd=tmp_path,
+                       timeout=120)
     assert r.returncode == 2 and text in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
@@ -81,7 +83,8 @@ def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     out = tmp_path / "results"
     (tmp_path / "adv.json").write_text(json.dumps({"bc_init_iterations": 3, "num_envs": 8, "hidden_size": 16}))
     r = pomil("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
-              "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2, "--adversarial-config", tmp_path / "adv.json",
+              "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2,
+              "--adversarial-config", tmp_path / "adv.json",
               "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz", "--no-progress")
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
@@ -119,7 +122,8 @@ def test_mismatched_demonstrations_are_refused_by_train_plot_and_evaluate(demos_
     wide = _with(demos_path, tmp_path, "wide.npz", states=np.concatenate([d.states, d.states[:, :1]], 1))
     history = _with(demos_path, tmp_path, "h2.npz", observations=np.concatenate([d.observations, d.observations], 1),
                     metadata={"env_kwargs": {**d.metadata["env_kwargs"], "history": 2}})
-    other = _with(demos_path, tmp_path, "pendulum.npz", observations=np.concatenate([d.observations, d.actions[:, :1]], 1),
+    other = _with(demos_path, tmp_path, "pendulum.npz",
+                  observations=np.concatenate([d.observations, d.actions[:, :1]], 1),
                   actions=d.actions[:, :1], states=None,
                   metadata={"env_id": "Pendulum-v1", "env_kwargs": {}, "observation_mask": None})
     cases = [

@@ -62,7 +62,8 @@ def test_out_of_range_values_are_refused_naming_field_value_and_interval(values,
         from_dict(AdversarialConfig, values, source="run.json")
     assert str(err.value) == f"run.json: {text}" or str(err.value).startswith(f"run.json: {text}"), str(err.value)
     with pytest.raises(ValueError):  # the same check when a config is built in Python
-        AdversarialConfig(**{k: (float(v) if k in ("lr", "gamma") and isinstance(v, str) else v) for k, v in values.items()})
+        AdversarialConfig(**{k: (float(v) if k in ("lr", "gamma") and isinstance(v, str) else v)
+                             for k, v in values.items()})
 
 
 def test_boundaries_are_as_declared():
@@ -110,14 +111,16 @@ def test_cli_subprocess_bad_value_has_no_traceback(tmp_path):
     (tmp_path / "c.json").write_text(json.dumps({"lr": -1}))
     r = subprocess.run([sys.executable, "-m", "pomil.cli", "train", "bc", "--config", "c.json", "--demos", "x.npz"],
                        capture_output=True, text=True, cwd=tmp_path, timeout=120)
-    assert r.returncode == 2 and r.stderr == "pomil: error: c.json: config key 'lr': expected a finite number in (0, inf), got -1.0\n"
+    assert r.returncode == 2
+    assert r.stderr == "pomil: error: c.json: config key 'lr': expected a finite number in (0, inf), got -1.0\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.json"]
 
 
 def test_help_shows_the_interval():
     from pomil.cli import build_parser
 
-    text = build_parser()._subparsers._group_actions[0].choices["train"]._subparsers._group_actions[0].choices["gail"].format_help()
+    train = build_parser()._subparsers._group_actions[0].choices["train"]
+    text = train._subparsers._group_actions[0].choices["gail"].format_help()
     assert "in (0, 1]" in text and "in (0, inf)" in text
 
 

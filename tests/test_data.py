@@ -130,7 +130,8 @@ def test_cli_reports_bad_demos_in_one_line_and_writes_nothing(case, tmp_path):
     path = make_bad(case, tmp_path)
     out = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "pomil.cli", "train", "bc", "--demos", str(path), "--out", str(out), "--iterations", "2"],
+        [sys.executable, "-m", "pomil.cli", "train", "bc", "--demos", str(path), "--out", str(out),
+         "--iterations", "2"],
         capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 2
@@ -147,7 +148,8 @@ def test_cli_rejects_demos_whose_sizes_do_not_match_the_env(tmp_path):
     path = tmp_path / "odd.npz"
     np.savez(path, **arrays, metadata=np.array(json.dumps({"env_id": "pomil/Circles-v0", "env_kwargs": {}})))
     proc = subprocess.run(
-        [sys.executable, "-m", "pomil.cli", "train", "bc", "--demos", str(path), "--out", str(tmp_path / "r"), "--iterations", "2"],
+        [sys.executable, "-m", "pomil.cli", "train", "bc", "--demos", str(path), "--out", str(tmp_path / "r"),
+         "--iterations", "2"],
         capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 2, proc.stderr

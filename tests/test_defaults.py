@@ -33,21 +33,25 @@ def test_paper_text_preset_gives_the_texts_settings_and_flags_override_it():
     assert cfg.preset == "paper-text"
     assert (cfg.critic_optimizer, cfg.weight_clip, cfg.gradient_penalty) == ("rmsprop", 0.01, 0.0)
     assert cfg.lr == cfg.lr_critic == cfg.lr_posterior == 2e-4
-    assert (cfg.update_mode, cfg.bc_init_codes, cfg.bc_weight, cfg.policy_warmup_iterations) == ("window", "random", 0.0, 0)
+    assert (cfg.update_mode, cfg.bc_init_codes, cfg.bc_weight, cfg.policy_warmup_iterations) == ("window", "random",
+                                                                                                 0.0, 0)
     assert (cfg.gamma, cfg.gae_lambda, cfg.hidden_size) == (0.99, 0.95, 128)  # the text's, and the defaults too
     assert from_dict(AdversarialConfig, {"preset": "paper-text", "lr": 1e-3}).lr == 1e-3  # the user's values win
     assert from_dict(AdversarialConfig, {"preset": "default"}) == AdversarialConfig()
-    with pytest.raises(PomilError, match="config key 'preset': expected one of \\['default', 'paper-text'\\], got 'paper'"):
+    with pytest.raises(PomilError,
+                       match="config key 'preset': expected one of \\['default', 'paper-text'\\], got 'paper'"):
         from_dict(AdversarialConfig, {"preset": "paper"})
 
 
 def test_preset_flag_is_recorded_in_config_json(demos_path, tmp_path):
     out = tmp_path / "run"
-    assert main(["train", "infogail", "--preset", "paper-text", "--demos", str(demos_path), "--out", str(out), "--iterations", "1",
+    assert main(["train", "infogail", "--preset", "paper-text", "--demos", str(demos_path), "--out", str(out),
+                 "--iterations", "1",
                  "--num-envs", "4", "--hidden-size", "8", "--bc-init-iterations", "1", "--eval-every", "0",
                  "--critic-steps", "1", "--no-progress"]) == 0
     written = json.loads((out / "config.json").read_text())
-    assert written["preset"] == "paper-text" and written["critic_optimizer"] == "rmsprop" and written["weight_clip"] == 0.01
+    assert written["preset"] == "paper-text"
+    assert written["critic_optimizer"] == "rmsprop" and written["weight_clip"] == 0.01
     assert written["bc_init_iterations"] == 1  # the flag over the preset
 
 
@@ -69,7 +73,8 @@ def test_modes_success_needs_purity_coverage_and_nmi():
 
 
 def test_reproduce_circles_modes_tiny(tmp_path):
-    (tmp_path / "adv.json").write_text(json.dumps({"iterations": 1, "num_envs": 4, "hidden_size": 8, "bc_init_iterations": 2,
+    (tmp_path / "adv.json").write_text(json.dumps({"iterations": 1, "num_envs": 4, "hidden_size": 8,
+                                                   "bc_init_iterations": 2,
                                                    "posterior_init_iterations": 1, "critic_batch": 4, "eval_every": 0}))
     out = tmp_path / "results"
     assert main(["reproduce", "circles-modes", "--seeds", "1", "--cases", "two,three", "--episodes-per-mode", "4",
@@ -82,7 +87,8 @@ def test_reproduce_circles_modes_tiny(tmp_path):
 
 
 def _default_run(demos_path, out, **overrides):
-    cfg = dataclasses.replace(AdversarialConfig(demos=str(demos_path), out=str(out), progress=False, eval_every=0), **overrides)
+    cfg = dataclasses.replace(AdversarialConfig(demos=str(demos_path), out=str(out), progress=False, eval_every=0),
+                              **overrides)
     return evaluate_circles(TrainedPolicy.load(train_adversarial(cfg)), 50, seed=1000)[0]
 
 

@@ -76,7 +76,8 @@ def small_demos(tmp_path_factory, demos):
     path = tmp_path_factory.mktemp("fuzz") / "small.npz"
     d = demos
     n = int(d.episode_bounds[6])
-    Demonstrations(d.observations[:n], d.actions[:n], d.episode_bounds[:7], d.labels[:6], d.states[:n], d.metadata).save(path)
+    Demonstrations(d.observations[:n], d.actions[:n], d.episode_bounds[:7], d.labels[:6], d.states[:n],
+                   d.metadata).save(path)
     return path
 
 
@@ -114,7 +115,8 @@ def demo_archives(draw, base: Path) -> dict[str, np.ndarray]:
             arrays[key] = draw(_arrays())
     if draw(st.booleans()):
         md = draw(st.one_of(st.text(max_size=50), st.dictionaries(st.sampled_from(
-            ["env_id", "env_kwargs", "observation_mask", "tasks", "expert_returns"]), _json_values(), max_size=4).map(json.dumps)))
+            ["env_id", "env_kwargs", "observation_mask", "tasks", "expert_returns"]), _json_values(),
+                                                                  max_size=4).map(json.dumps)))
         arrays["metadata"] = np.array(md)
     return arrays
 
@@ -144,7 +146,8 @@ def _demos_arrays_property(small_demos, settings_):
             # a training run on it either starts or leaves nothing behind
             out = Path(d) / "run"
             try:
-                train_bc(BCConfig(demos=str(path), out=str(out), iterations=1, hidden_size=4, policy="mlp", progress=False))
+                train_bc(BCConfig(demos=str(path), out=str(out), iterations=1, hidden_size=4, policy="mlp",
+                                  progress=False))
             except PomilError as err:
                 _one_line(err, path)
                 assert not out.exists()
@@ -235,7 +238,8 @@ def _check_checkpoint(path: Path, run: Path, demos_path: Path, category: str) ->
         COUNTS[category]["refused in one line"] += 1
     before = path.read_bytes()
     try:  # resuming from it either continues or leaves the checkpoint as it was
-        train_bc(BCConfig(demos=str(demos_path), out=str(run), iterations=3, hidden_size=4, policy="gru", progress=False),
+        train_bc(BCConfig(demos=str(demos_path), out=str(run), iterations=3, hidden_size=4, policy="gru",
+                          progress=False),
                  resume=True)
         COUNTS[category]["resumed"] += 1
     except PomilError as err:

@@ -48,7 +48,8 @@ def test_collect_masks_steps_after_termination():
     env = make_vec_env(HOPPER_ID, hopper_kwargs("forward", "standard"), 4, seed=0)
     policy = GaussianPolicy(PolicyArch(11, 3, "mlp", 16, 0, 1.0))  # wide noise: falls within a few dozen steps
     value = heads.value(11, 3, 0, "mlp", 16)
-    roll, _, _, rewards = collect(env, policy, value, 0, executed_actions_fn(HOPPER_ID, {}), torch.Generator().manual_seed(0),
+    roll, _, _, rewards = collect(env, policy, value, 0, executed_actions_fn(HOPPER_ID, {}),
+                                  torch.Generator().manual_seed(0),
                                   torch.device("cpu"))
     lengths = roll.mask.sum(0)
     assert roll.num_steps == int(lengths.max()) < 1000
@@ -64,7 +65,8 @@ def test_cli_expert_and_infogail_pomdp_smoke(tmp_path, capsys):
                  "--minibatches", "4", "--out", str(out), "--no-progress"]) == 0
     assert (out / "checkpoint.pt").exists() and (out / "evaluation.json").exists()
     run = tmp_path / "ip"
-    assert main(["train", "infogail-pomdp", "--demos", str(DEMOS), "--out", str(run), "--iterations", "2", "--num-envs", "8",
+    assert main(["train", "infogail-pomdp", "--demos", str(DEMOS), "--out", str(run), "--iterations", "2",
+                 "--num-envs", "8",
                  "--bc-init-iterations", "2", "--eval-every", "1", "--eval-episodes", "2", "--critic-batch", "8",
                  "--no-progress"]) == 0
     header = (run / "metrics.csv").read_text().splitlines()[0]
@@ -80,7 +82,8 @@ def test_reproduce_hopper_smoke_with_override(tmp_path):
     import json
 
     override = tmp_path / "adv.json"
-    override.write_text(json.dumps({"num_envs": 8, "critic_batch": 8, "bc_init_iterations": 2, "posterior_init_iterations": 2,
+    override.write_text(json.dumps({"num_envs": 8, "critic_batch": 8, "bc_init_iterations": 2,
+                                    "posterior_init_iterations": 2,
                                     "eval_every": 1, "eval_episodes": 2}))
     out = tmp_path / "results"
     assert main(["reproduce", "hopper", "--seeds", "1", "--learners", "bc-mlp,infogail-pomdp", "--bc-iterations", "2",

@@ -49,7 +49,8 @@ def test_pomil_demos_round_trip_through_minari_exactly(tmp_path, monkeypatch):
 
 
 def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypatch):
-    """A dataset pomil did not write (Minari's own writer): env from its spec, learner's view from the mask, full obs kept as states."""
+    """A dataset pomil did not write (Minari's own writer): env from its spec, learner's view from the mask,
+    full obs kept as states."""
     import minari
     from minari.data_collector import EpisodeBuffer
 
@@ -63,12 +64,14 @@ def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypa
         while not done:
             act = env.action_space.sample()
             obs, rew, term, trunc, _ = env.step(act)
-            for key, value in zip(("observations", "actions", "rewards", "terminations", "truncations"), (obs, act, rew, term, trunc)):
+            for key, value in zip(("observations", "actions", "rewards", "terminations", "truncations"),
+                                  (obs, act, rew, term, trunc)):
                 ep[key].append(value)
             done = term or trunc
         episodes.append(EpisodeBuffer(id=seed, **{k: np.asarray(v) for k, v in ep.items()}))
     minari.create_dataset_from_buffers("test/cheetah-random-v0", episodes, env=env.spec, eval_env=env.spec,
-                                       algorithm_name="random", author="test", author_email="t@t", code_permalink="none")
+                                       algorithm_name="random", author="test", author_email="t@t",
+                                       code_permalink="none")
     monkeypatch.delenv("MINARI_DATASETS_PATH")
     demos = import_minari("test/cheetah-random-v0", root=tmp_path, observation_mask="positions-only")
     assert demos.num_episodes == 3 and demos.episode_lengths.tolist() == [10, 10, 10]
@@ -77,11 +80,15 @@ def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypa
     np.testing.assert_array_equal(demos.observations, demos.states[:, :8])
     # the learner trains on it: CLI import, then a tiny InfoGAIL-POMDP run on HalfCheetah
     out = tmp_path / "c.npz"
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", "demos", "import-minari", "test/cheetah-random-v0", "--out", str(out),
-                        "--minari-root", str(tmp_path), "--observation-mask", "positions-only"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "pomil.cli", "demos", "import-minari", "test/cheetah-random-v0",
+                        "--out", str(out),
+                        "--minari-root", str(tmp_path), "--observation-mask", "positions-only"], capture_output=True,
+                       text=True)
     assert r.returncode == 0 and "3 episodes of HalfCheetah-v5" in r.stdout, r.stderr
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", "train", "infogail-pomdp", "--demos", str(out), "--iterations", "1",
-                        "--num-envs", "2", "--minibatches", "2", "--bc-init-iterations", "1", "--out", str(tmp_path / "run"), "--no-progress"],
+    r = subprocess.run([sys.executable, "-m", "pomil.cli", "train", "infogail-pomdp", "--demos", str(out),
+                        "--iterations", "1",
+                        "--num-envs", "2", "--minibatches", "2", "--bc-init-iterations", "1",
+                        "--out", str(tmp_path / "run"), "--no-progress"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     cfg = json.loads((tmp_path / "run" / "config.json").read_text())
@@ -91,5 +98,6 @@ def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypa
 def test_cli_minari_errors_are_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "pomil.cli", "demos", "import-minari", "nope/none-v0", "--out",
                         str(tmp_path / "x.npz"), "--minari-root", str(tmp_path)], capture_output=True, text=True)
-    assert r.returncode == 2 and "no local Minari dataset 'nope/none-v0'" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 2, r.stderr
+    assert "no local Minari dataset 'nope/none-v0'" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.npz").exists()

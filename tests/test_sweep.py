@@ -63,7 +63,8 @@ def test_reproduce_on_ray_gives_the_sequential_results(tmp_path, demos_path):
     import shutil
 
     shutil.copy(demos_path, tmp_path / "d.npz")
-    args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 20, "--episodes-per-code", 10, "--learners", "bc-mlp",
+    args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 20, "--episodes-per-code", 10,
+            "--learners", "bc-mlp",
             "--demos", "d.npz", "--no-progress")
     r = pomil(*args, "--out", "seq", "--runs", "runs-seq", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
@@ -93,7 +94,8 @@ def test_a_run_whose_worker_is_killed_resumes_from_its_checkpoint_on_retry(tmp_p
                                   "hidden_size": 16, "batch_episodes": 16, "checkpoint_every": 100, "log_every": 10}))
     out = tmp_path / "sweep"
     run = out / "base" / "seed0"
-    sweep = subprocess.Popen([sys.executable, "-m", "pomil.cli", "sweep", str(config), "--seeds", "1", "--out", str(out),
+    sweep = subprocess.Popen([sys.executable, "-m", "pomil.cli", "sweep", str(config), "--seeds", "1",
+                              "--out", str(out),
                               "--episodes-per-code", "2"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 240
     while not (run / "checkpoint.pt").exists() and time.monotonic() < deadline and sweep.poll() is None:

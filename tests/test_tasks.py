@@ -67,7 +67,8 @@ def test_non_box_spaces_are_refused():
 
 
 def test_locomotion_task_keywords():
-    assert locomotion_kwargs("HalfCheetah-v5", "backward", "paper") == {"forward_reward_weight": -1.0, "max_episode_steps": 128}
+    assert locomotion_kwargs("HalfCheetah-v5", "backward", "paper") == {"forward_reward_weight": -1.0,
+                                                                        "max_episode_steps": 128}
     assert locomotion_kwargs("Walker2d-v5", "forward", "paper") == {
         "forward_reward_weight": 1.0, "max_episode_steps": 128, "terminate_when_unhealthy": False}
     assert locomotion_kwargs("Walker2d-v5", "forward", "standard") == {"forward_reward_weight": 1.0}
@@ -85,7 +86,8 @@ def test_kwargs_and_mask_parsing():
     from pomil.algos.expert import ExpertConfig
 
     cfg = from_dict(ExpertConfig, {"env_kwargs": {"ctrl_cost_weight": 0.05}, "env_id": "HalfCheetah-v5"})
-    assert cfg.env_settings() == ({"forward_reward_weight": 1.0, "max_episode_steps": 128, "ctrl_cost_weight": 0.05}, None)
+    assert cfg.env_settings() == ({"forward_reward_weight": 1.0, "max_episode_steps": 128, "ctrl_cost_weight": 0.05},
+                                  None)
     assert parse_mask("") is None and parse_mask("positions-only") == "positions-only" and parse_mask("0, 2") == [0, 2]
     with pytest.raises(ValueError, match="comma-separated"):
         parse_mask("velocities")
@@ -141,7 +143,8 @@ def test_merge_refuses_incompatible_files(other, text):
 
 def test_hopper_demos_record_plus_merge_reproduce_the_shipped_file():
     shipped = Demonstrations.load(ROOT / "data" / "hopper-paper.npz")
-    demos = record_hopper_demos({t: str(ROOT / "data" / "experts" / f"hopper-{t}.pt") for t in ("forward", "backward")}, 200)
+    demos = record_hopper_demos({t: str(ROOT / "data" / "experts" / f"hopper-{t}.pt") for t in ("forward", "backward")},
+                                200)
     for name in ("observations", "actions", "episode_bounds", "labels", "states"):
         np.testing.assert_array_equal(getattr(demos, name), getattr(shipped, name), err_msg=name)
     for key in ("tasks", "expert_returns", "still_returns", "expert_displacement", "observation_mask", "env_kwargs"):
@@ -160,12 +163,14 @@ def test_cli_any_task_experts_record_merge_train_evaluate(tmp_path):
         r = pomil("demos", "record", "--expert", tmp_path / "e" / "checkpoint.pt", "--episodes", 4,
                   "--observation-mask", "0", "--task", name, "--seed", seed, "--out", tmp_path / f"{name}.npz")
         assert r.returncode == 0, r.stderr
-    r = pomil("demos", "merge", tmp_path / "a.npz", tmp_path / "b.npz", "--proportions", "1,1", "--out", tmp_path / "m.npz")
+    r = pomil("demos", "merge", tmp_path / "a.npz", tmp_path / "b.npz", "--proportions", "1,1",
+              "--out", tmp_path / "m.npz")
     assert r.returncode == 0 and "a 4, b 4" in r.stdout, r.stderr + r.stdout
     m = Demonstrations.load(tmp_path / "m.npz")
     assert m.obs_dim == 1 and m.metadata["observation_mask"] == [0] and m.states.shape[1] == 3
     r = pomil("train", "infogail-pomdp", "--demos", tmp_path / "m.npz", "--iterations", 2, "--num-envs", 4,
-              "--bc-init-iterations", 2, "--eval-every", 1, "--eval-episodes", 2, "--out", tmp_path / "run", "--no-progress")
+              "--bc-init-iterations", 2, "--eval-every", 1, "--eval-episodes", 2, "--out", tmp_path / "run",
+              "--no-progress")
     assert r.returncode == 0, r.stderr
     header = (tmp_path / "run" / "metrics.csv").read_text().splitlines()[0]
     assert "eval/a/normalised_return" in header and "eval/b/progress" in header
@@ -207,8 +212,10 @@ def test_training_overrides_remask_full_observations_and_replace_env_keywords(tm
     with pytest.raises(DataError, match="states"):
         load_training_demos(str(tmp_path / "n.npz"), {}, [0])
     # the CLI: a policy on height + two velocities, in 16-step episodes
-    r = pomil("train", "infogail-pomdp", "--demos", path, "--observation-mask", "0,5,6", "--env-kwargs", "max_episode_steps=16",
-              "--iterations", 1, "--num-envs", 2, "--minibatches", 2, "--bc-init-iterations", 1, "--eval-every", 0, "--out", tmp_path / "r",
+    r = pomil("train", "infogail-pomdp", "--demos", path, "--observation-mask", "0,5,6",
+              "--env-kwargs", "max_episode_steps=16",
+              "--iterations", 1, "--num-envs", 2, "--minibatches", 2, "--bc-init-iterations", 1, "--eval-every", 0,
+              "--out", tmp_path / "r",
               "--no-progress")
     assert r.returncode == 0, r.stderr
     from pomil.api import TrainedPolicy
@@ -226,25 +233,33 @@ def test_reproduce_tasks_and_a_sequential_sweep_on_any_task(tmp_path):
               "--out", tmp_path / "e", "--no-progress")
     assert r.returncode == 0, r.stderr
     for name in ("up", "down"):
-        r = pomil("demos", "record", "--expert", tmp_path / "e" / "checkpoint.pt", "--episodes", 2, "--observation-mask", "0,1",
+        r = pomil("demos", "record", "--expert", tmp_path / "e" / "checkpoint.pt", "--episodes", 2,
+                  "--observation-mask", "0,1",
                   "--task", name, "--out", tmp_path / f"{name}.npz")
         assert r.returncode == 0, r.stderr
     r = pomil("demos", "merge", tmp_path / "up.npz", tmp_path / "down.npz", "--out", tmp_path / "m.npz")
     assert r.returncode == 0, r.stderr
     tiny = {"num_envs": 2, "minibatches": 2,
-            "bc_init_iterations": 1, "posterior_init_iterations": 1, "hidden_size": 8, "eval_every": 1, "eval_episodes": 1}
+            "bc_init_iterations": 1, "posterior_init_iterations": 1, "hidden_size": 8, "eval_every": 1,
+            "eval_episodes": 1}
     (tmp_path / "adv.json").write_text(json.dumps(tiny))
-    r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res", "--learners", "infogail-pomdp",
-              "--seeds", 1, "--adversarial-iterations", 1, "--episodes-per-code", 1, "--adversarial-config", tmp_path / "adv.json",
+    r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res",
+              "--learners", "infogail-pomdp",
+              "--seeds", 1, "--adversarial-iterations", 1, "--episodes-per-code", 1,
+              "--adversarial-config", tmp_path / "adv.json",
               "--no-progress", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     metrics = json.loads((tmp_path / "res" / "metrics.json").read_text())
-    assert metrics["experiment"] == "tasks" and metrics["env_id"] == "Pendulum-v1" and metrics["tasks"] == ["up", "down"]
-    assert (tmp_path / "runs" / "res" / "infogail-pomdp" / "seed0" / "checkpoint.pt").exists()  # runs/ named after --out
-    assert (tmp_path / "res" / "figure.png").exists() and "| infogail-pomdp |" in (tmp_path / "res" / "table.md").read_text()
+    assert metrics["experiment"] == "tasks" and metrics["env_id"] == "Pendulum-v1"
+    assert metrics["tasks"] == ["up", "down"]
+    # runs/ named after --out
+    assert (tmp_path / "runs" / "res" / "infogail-pomdp" / "seed0" / "checkpoint.pt").exists()
+    assert (tmp_path / "res" / "figure.png").exists()
+    assert "| infogail-pomdp |" in (tmp_path / "res" / "table.md").read_text()
     (tmp_path / "sweep.json").write_text(json.dumps({"learner": "infogail-pomdp", "demos": str(tmp_path / "m.npz"),
                                                      "iterations": 1, **tiny}))
-    r = pomil("sweep", tmp_path / "sweep.json", "--seeds", 2, "--no-ray", "--episodes-per-code", 1, "--out", tmp_path / "sw")
+    r = pomil("sweep", tmp_path / "sweep.json", "--seeds", 2, "--no-ray", "--episodes-per-code", 1,
+              "--out", tmp_path / "sw")
     assert r.returncode == 0, r.stderr
     data = json.loads((tmp_path / "sw" / "sweep.json").read_text())
     assert data["summary"]["base"]["seeds"] == 2 and set(data["summary"]["base"]["tasks"]) == {"up", "down"}

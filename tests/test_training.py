@@ -77,7 +77,8 @@ def test_bc_nan_at_a_chosen_iteration_stops_there_keeps_the_checkpoint_and_resum
 
 
 def test_bc_with_a_huge_learning_rate_exits_3_in_one_line(demos_path, tmp_path, capsys):
-    code = main(["train", "bc", "--demos", str(demos_path), "--out", str(tmp_path / "r"), "--lr", "1e3", "--policy", "mlp",
+    code = main(["train", "bc", "--demos", str(demos_path), "--out", str(tmp_path / "r"), "--lr", "1e3",
+                 "--policy", "mlp",
                  "--hidden-size", "16", "--iterations", "50", "--checkpoint-every", "1", "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 3 and len(err) == 1 and err[0].startswith("pomil: error: iteration "), err
@@ -97,7 +98,8 @@ def test_adversarial_nan_critic_loss_at_iteration_3_keeps_checkpoint_2_and_resum
     rows = list(csv.DictReader(open(out / "metrics.csv")))
     assert [r["iteration"] for r in rows] == ["0", "1", "2"]  # flushed up to the iteration that diverged
     monkeypatch.undo()
-    with pytest.raises(PomilError, match=r"changed: hidden_size\)"):  # learning rates may change on resume, nothing else
+    with pytest.raises(PomilError,
+                       match=r"changed: hidden_size\)"):  # learning rates may change on resume, nothing else
         train_adversarial(_adv(demos_path, out, lr_value=1e-4, hidden_size=32), resume=True)
     assert (out / "checkpoint.pt").read_bytes() == before
     train_adversarial(_adv(demos_path, out, lr_critic=1e-4), resume=True)
@@ -107,7 +109,8 @@ def test_adversarial_nan_critic_loss_at_iteration_3_keeps_checkpoint_2_and_resum
 
 def test_the_issues_divergent_learning_rates_end_in_one_line_with_exit_3(demos_path, tmp_path, capsys):
     code = main(["train", "infogail-pomdp", "--demos", str(demos_path), "--out", str(tmp_path / "r"), "--lr", "1e4",
-                 "--lr-critic", "1e4", "--lr-value", "1e4", "--iterations", "6", "--num-envs", "8", "--hidden-size", "16",
+                 "--lr-critic", "1e4", "--lr-value", "1e4", "--iterations", "6", "--num-envs", "8",
+                 "--hidden-size", "16",
                  "--critic-steps", "1", "--bc-init-iterations", "0", "--eval-every", "0", "--checkpoint-every", "1",
                  "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
@@ -134,7 +137,8 @@ def test_nan_gradient_and_reward_are_named(demos_path, tmp_path, monkeypatch):
         return r.index_fill(1, torch.tensor([3]), math.inf), s
 
     monkeypatch.setattr(adversarial, "rewards", nan_reward)
-    with pytest.raises(DivergenceError, match=r"^iteration 1: reward is inf .*try a lower --lr-critic \(now 0.0005\) or "
+    with pytest.raises(DivergenceError,
+                       match=r"^iteration 1: reward is inf .*try a lower --lr-critic \(now 0.0005\) or "
                                               r"--lr-posterior \(now 0.0002\); "):
         train_adversarial(_adv(demos_path, tmp_path / "r"))
     monkeypatch.undo()
@@ -220,7 +224,8 @@ def test_full_disk_at_a_checkpoint_is_one_error_and_the_previous_checkpoint_stay
     monkeypatch.setattr(pomil.training, "save_checkpoint", save)  # what every run's checkpoint goes through
     with pytest.raises(PomilError) as err:
         train_bc(_bc(demos_path, out))
-    assert str(err.value) == f"{out / 'checkpoint.pt'}: cannot write (No space left on device); the previous checkpoint.pt is unchanged"
+    assert str(err.value) == (f"{out / 'checkpoint.pt'}: cannot write (No space left on device); "
+                              "the previous checkpoint.pt is unchanged")
     assert load_checkpoint(out)["iteration"] == 5
     assert sorted(p.name for p in out.iterdir() if p.name.endswith(".tmp")) == []  # nothing half-written
     monkeypatch.undo()
@@ -253,7 +258,8 @@ def test_a_second_run_into_a_busy_directory_is_refused_in_one_line(demos_path, t
     out = tmp_path / "busy"
     with RunLock(out) as lock:
         lock.acquire()
-        code = main(["train", "bc", "--demos", str(demos_path), "--out", str(out), "--iterations", "2", "--no-progress"])
+        code = main(["train", "bc", "--demos", str(demos_path), "--out", str(out), "--iterations", "2",
+                     "--no-progress"])
         err = capsys.readouterr().err
         assert code == 2 and err.count("\n") == 1, err
         assert err.startswith(f"pomil: error: {out}: in use by another run (pid {os.getpid()} on ")
@@ -268,7 +274,8 @@ def test_two_real_runs_into_one_directory(demos_path, tmp_path):
     args = [sys.executable, "-m", "pomil.cli", "train", "bc", "--demos", str(demos_path), "--out", str(out),
             "--policy", "mlp", "--hidden-size", "8", "--batch-episodes", "8", "--no-progress"]
     env = {**os.environ, "PYTHONPATH": SRC}
-    first = subprocess.Popen([*args, "--iterations", "10000000", "--seed", "1"], env=env, stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen([*args, "--iterations", "10000000", "--seed", "1"], env=env, stderr=subprocess.PIPE,
+                             text=True)
     try:
         deadline = time.monotonic() + 120
         while not (out / "config.json").exists() and first.poll() is None and time.monotonic() < deadline:
@@ -291,7 +298,8 @@ def test_a_lock_left_by_a_killed_run_is_taken_over_by_resume(demos_path, tmp_pat
     out = tmp_path / "stale"
     train_bc(_bc(demos_path, out, iterations=5))
     holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pomil.training import RunLock; "
-                               "RunLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(120)", str(out)],
+                               "RunLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(120)",
+                               str(out)],
                               env={**os.environ, "PYTHONPATH": SRC}, stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"
     with pytest.raises(RunBusyError, match=f"pid {holder.pid} on"):
@@ -323,14 +331,16 @@ def test_env_steps_count_the_whole_run_across_resumes(demos_path, tmp_path):
     assert load_checkpoint(tmp_path / "split")["env_steps"] == 4 * 8 * 33
 
 
-def test_resume_with_iterations_below_the_checkpoint_is_refused_and_equal_is_nothing_to_do(demos_path, tmp_path, capsys):
+def test_resume_with_iterations_below_the_checkpoint_is_refused_and_equal_is_nothing_to_do(demos_path, tmp_path,
+                                                                                           capsys):
     out = tmp_path / "r"
     train_bc(_bc(demos_path, out))
     before = (out / "checkpoint.pt").read_bytes()
     flags = ["train", "bc", "--demos", str(demos_path), "--out", str(out), "--policy", "mlp", "--hidden-size", "16",
              "--checkpoint-every", "5", "--batch-episodes", "16", "--log-every", "1", "--no-progress", "--resume"]
     assert main([*flags, "--iterations", "4"]) == 2
-    assert capsys.readouterr().err == (f"pomil: error: {out / 'checkpoint.pt'}: the checkpoint is at iteration 10, past "
+    assert capsys.readouterr().err == (f"pomil: error: {out / 'checkpoint.pt'}: the checkpoint is at iteration 10, "
+                                       "past "
                                        "--iterations 4; nothing to resume (pass --iterations above 10 to continue; the "
                                        "checkpoint is unchanged)\n")
     assert main([*flags, "--iterations", "10"]) == 0

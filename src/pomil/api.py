@@ -67,7 +67,8 @@ class TrainedPolicy:
             first = (str(err).strip().splitlines() or [""])[0][:160]
             raise PomilError(f"{path}: checkpoint has no usable policy ({type(err).__name__}: {first})") from None
         env = ckpt.get("env", {})
-        if not isinstance(env, dict) or not isinstance(env.get("id", ""), str) or not isinstance(env.get("kwargs") or {}, dict):
+        if (not isinstance(env, dict) or not isinstance(env.get("id", ""), str)
+                or not isinstance(env.get("kwargs") or {}, dict)):
             raise PomilError(f"{path}: checkpoint's 'env' is not an environment description (got {env!r:.160})")
         try:
             return cls(policy, str(ckpt.get("algo", "?")), dict(env), device, obs_norm)
@@ -81,7 +82,8 @@ class TrainedPolicy:
         checkpoint that :meth:`load` and ``pomil evaluate`` read."""
         save_checkpoint(path, {"algo": self.algo, "env": self.env, "policy_arch": self.policy.arch.to_dict(),
                                "policy": {k: v.detach().cpu() for k, v in self.policy.state_dict().items()},
-                               "obs_norm": None if self.obs_norm is None else {k: v.cpu() for k, v in self.obs_norm.state_dict().items()}})
+                               "obs_norm": None if self.obs_norm is None
+                               else {k: v.cpu() for k, v in self.obs_norm.state_dict().items()}})
 
     @property
     def num_codes(self) -> int:
@@ -96,7 +98,8 @@ class TrainedPolicy:
     def act_dim(self) -> int:
         return self.policy.arch.act_dim
 
-    def reset(self, num_envs: int, codes: Sequence[int] | np.ndarray | torch.Tensor | None = None, seed: int | None = None) -> None:
+    def reset(self, num_envs: int, codes: Sequence[int] | np.ndarray | torch.Tensor | None = None,
+              seed: int | None = None) -> None:
         """Start ``num_envs`` episodes.  ``codes``: one code per episode
         (default: 0, 1, ..., K-1, 0, 1, ...); ignored without codes.  Bad arguments raise
         :class:`pomil.errors.InvalidArgument` (a ValueError) naming the argument."""
@@ -124,7 +127,8 @@ class TrainedPolicy:
         try:
             arr = codes.detach().cpu().numpy() if isinstance(codes, torch.Tensor) else np.asarray(codes)
         except ValueError:  # ragged lists
-            raise InvalidArgument(f"codes must be {num_envs} integers in [0, {self.num_codes}), got {codes!r}") from None
+            raise InvalidArgument(f"codes must be {num_envs} integers in [0, {self.num_codes}), "
+                                  f"got {codes!r}") from None
         want = f"codes must be {num_envs} integers in [0, {self.num_codes})"
         if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
             raise InvalidArgument(f"{want}, got {np.asarray(arr).tolist()!r} (dtype {arr.dtype})")

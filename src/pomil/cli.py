@@ -103,7 +103,8 @@ class HopperDemosConfig:
                                                             "standard: Hopper's own 1000 steps")
     forward_expert: str = option("data/experts/hopper-forward.pt", "forward expert checkpoint (pomil experts hopper)")
     backward_expert: str = option("data/experts/hopper-backward.pt", "backward expert checkpoint")
-    observation_mask: str = option("positions-only", "what the learner observes: positions-only, or comma-separated indices")
+    observation_mask: str = option("positions-only",
+                                   "what the learner observes: positions-only, or comma-separated indices")
     seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
 
 
@@ -118,11 +119,14 @@ def _mask_arg(text: str) -> str | list[int] | None:
 
 @dataclass(frozen=True)
 class RecordDemosConfig:
-    expert: str = option("", "expert checkpoint (pomil experts ...); demonstrations come from its environment and keywords")
+    expert: str = option("",
+                         "expert checkpoint (pomil experts ...); demonstrations come from its environment and keywords")
     out: str = option("", "output .npz file (written atomically)")
     episodes: int = option(200, "episodes to record", within="[1, inf)")
-    task: str = option("", "task name kept as the episodes' label (default: forward/backward from forward_reward_weight)")
-    observation_mask: str = option("positions-only", "what the learner observes: positions-only, comma-separated indices, or '' (all)")
+    task: str = option("",
+                       "task name kept as the episodes' label (default: forward/backward from forward_reward_weight)")
+    observation_mask: str = option("positions-only",
+                                   "what the learner observes: positions-only, comma-separated indices, or '' (all)")
     seed: int = option(0, "random seed (reset noise)", within="[0, 4294967295]")
 
 
@@ -135,7 +139,8 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
     if not Path(cfg.expert).is_file():
         raise PomilError(f"{cfg.expert}: no expert checkpoint there (train one: pomil experts train --env-id ...)")
     try:
-        demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None, _mask_arg(cfg.observation_mask), cfg.seed)
+        demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None, _mask_arg(cfg.observation_mask),
+                                    cfg.seed)
     except ValueError as err:
         raise PomilError(f"demos record: {err}") from None
     demos.save(cfg.out)
@@ -200,7 +205,8 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
     experts = {"forward": cfg.forward_expert, "backward": cfg.backward_expert}
     for task, path in experts.items():
         if not Path(path).is_file():
-            raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task {task})")
+            raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
+                             f"{task})")
     try:
         demos = record_hopper_demos(experts, cfg.episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask))
     except ValueError as err:
@@ -209,7 +215,8 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
     md = demos.metadata
     print(f"wrote {cfg.out}: {demos.num_episodes} episodes ({cfg.episodes} per task, {cfg.setting} setting), "
           f"observation {md['observation_mask']}; expert returns "
-          + ", ".join(f"{t} {md['expert_returns'][t]:.1f} (zero actions {md['still_returns'][t]:.1f})" for t in experts))
+          + ", ".join(f"{t} {md['expert_returns'][t]:.1f} (zero actions {md['still_returns'][t]:.1f})"
+                      for t in experts))
     return 0
 
 
@@ -273,7 +280,8 @@ def matching_demos(path: str, policies: list[tuple[str, Any]]) -> Any:
     env_id, _ = check_demos_env(demos, path)
     for checkpoint, policy in policies:
         if env_id != policy.env.get("id"):
-            raise PomilError(f"{path}: demonstrations of {env_id}, but {checkpoint} was trained on {policy.env.get('id')}")
+            raise PomilError(f"{path}: demonstrations of {env_id}, but {checkpoint} was trained on "
+                             f"{policy.env.get('id')}")
         if (demos.obs_dim, demos.act_dim) != (policy.obs_dim, policy.act_dim):
             raise PomilError(f"{path}: observations {demos.obs_dim} / actions {demos.act_dim} wide, but {checkpoint}'s "
                              f"policy takes {policy.obs_dim} / {policy.act_dim}")
@@ -331,11 +339,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
     if args.demos:
         demos = matching_demos(args.demos, policies)
         if env_family(str(demos.metadata.get("env_id"))).evaluation != "circles":
-            raise PomilError(f"{args.demos}: plot draws circles demonstrations; these are of {demos.metadata.get('env_id')}")
+            raise PomilError(f"{args.demos}: plot draws circles demonstrations; these are of "
+                             f"{demos.metadata.get('env_id')}")
         if demos.states is None or demos.labels is None:
             raise PomilError(f"{args.demos}: field 'states'/'labels': expected both for plotting experts")
         if len(set(demos.episode_lengths.tolist())) != 1:
-            raise PomilError(f"{args.demos}: field 'episode_bounds': expected episodes of one length for plotting experts")
+            raise PomilError(f"{args.demos}: field 'episode_bounds': expected episodes of one length for plotting "
+                             "experts")
         T = int(demos.episode_lengths[0])
         pos = demos.states.reshape(demos.num_episodes, T, -1)[:, :, :2]
         # states hold the position *before* each action: shift by one to show visited points
@@ -353,13 +363,15 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from pomil.reproduce import (
-        CirclesModesConfig, CirclesReproConfig, HopperReproConfig, reproduce_circles, reproduce_circles_modes, reproduce_hopper,
+        CirclesModesConfig, CirclesReproConfig, HopperReproConfig, reproduce_circles, reproduce_circles_modes,
+        reproduce_hopper,
     )
 
     if args.experiment == "tasks":
         cfg = config_from_args(HopperReproConfig, args)
         if not cfg.demos or not Path(cfg.demos).is_file():
-            raise PomilError(f"reproduce tasks: --demos must name existing multi-task demonstrations (pomil demos merge), got {cfg.demos!r}")
+            raise PomilError("reproduce tasks: --demos must name existing multi-task demonstrations (pomil demos "
+                             f"merge), got {cfg.demos!r}")
         if not cfg.out:
             raise PomilError("reproduce tasks: --out is required (the results directory)")
         reproduce_hopper(cfg)
@@ -382,7 +394,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 # -------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="pomil", description="Multi-modal imitation learning in partially observable environments.")
+    p = argparse.ArgumentParser(prog="pomil",
+                                description="Multi-modal imitation learning in partially observable environments.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     demos = sub.add_parser("demos", help="record expert demonstrations")
@@ -390,23 +403,29 @@ def build_parser() -> argparse.ArgumentParser:
     dc = demos_sub.add_parser("circles", help="scripted circle experts, equal numbers per mode")
     add_config_flags(dc, CirclesDemosConfig)
     dc.set_defaults(func=cmd_demos)
-    dh = demos_sub.add_parser("hopper", help="Hopper forward + backward experts, equal numbers per task, positions-only view")
+    dh = demos_sub.add_parser("hopper",
+                              help="Hopper forward + backward experts, equal numbers per task, positions-only view")
     add_config_flags(dh, HopperDemosConfig)
     dh.set_defaults(func=cmd_demos_hopper)
     dr = demos_sub.add_parser("record", help="one expert checkpoint on its own environment (any task), one label")
     add_config_flags(dr, RecordDemosConfig)
     dr.set_defaults(func=cmd_demos_record)
-    di = demos_sub.add_parser("import-minari", help="a local Minari dataset as pomil demonstrations (needs the minari extra)")
+    di = demos_sub.add_parser("import-minari",
+                              help="a local Minari dataset as pomil demonstrations (needs the minari extra)")
     di.add_argument("dataset_id", help="Minari dataset id, e.g. pomil/hopper-paper-v0")
     di.add_argument("--out", required=True, help="output .npz file (written atomically)")
     di.add_argument("--observation-mask", default="",
-                    help="what the learner observes, for datasets not written by pomil: positions-only or indices (default: all)")
-    di.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
+                    help="what the learner observes, for datasets not written by pomil: positions-only or indices "
+                         "(default: all)")
+    di.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or "
+                                          "~/.minari/datasets)")
     di.set_defaults(func=cmd_demos_minari)
-    de = demos_sub.add_parser("export-minari", help="pomil demonstrations as a local Minari dataset (needs the minari extra)")
+    de = demos_sub.add_parser("export-minari",
+                              help="pomil demonstrations as a local Minari dataset (needs the minari extra)")
     de.add_argument("demos", help="demonstrations .npz")
     de.add_argument("--dataset-id", required=True, help="Minari dataset id to create, [namespace/]name-vN")
-    de.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
+    de.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or "
+                                          "~/.minari/datasets)")
     de.set_defaults(func=cmd_demos_minari)
     dm = demos_sub.add_parser("merge", help="several recordings (experts / tasks) into one unlabeled training set")
     dm.add_argument("files", nargs="+", help="demonstrations .npz files to merge")
@@ -438,7 +457,8 @@ def build_parser() -> argparse.ArgumentParser:
         tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         tp.set_defaults(func=cmd_train)
 
-    ev = sub.add_parser("evaluate", help="roll a checkpoint out: mode metrics (circles) or per-task scores (other tasks)")
+    ev = sub.add_parser("evaluate",
+                        help="roll a checkpoint out: mode metrics (circles) or per-task scores (other tasks)")
     ev.add_argument("checkpoint", help="checkpoint.pt (or its run directory)")
     ev.add_argument("--episodes-per-code", type=int, default=100, help="rollouts per latent code (default: 100)")
     ev.add_argument("--seed", type=int, default=0, help="rollout seed (default: 0)")
@@ -463,7 +483,8 @@ def build_parser() -> argparse.ArgumentParser:
     from pomil.sweep import SweepConfig
 
     sw = sub.add_parser("sweep", help="one training config over seeds and a grid of settings, in parallel on Ray")
-    sw.add_argument("sweep_config", metavar="CONFIG", help='JSON object: "learner" and its config keys ("demos" at least)')
+    sw.add_argument("sweep_config", metavar="CONFIG",
+                    help='JSON object: "learner" and its config keys ("demos" at least)')
     sw.add_argument("--grid", action="append", metavar="KEY=V1,V2",
                     help="a config key and its values; repeat for more keys (their product is swept)")
     add_config_flags(sw, SweepConfig)
@@ -476,14 +497,18 @@ def build_parser() -> argparse.ArgumentParser:
     rc = rp_sub.add_parser("circles", help="demos, train every learner over seeds, evaluate, table and figure")
     add_config_flags(rc, CirclesReproConfig)
     rc.set_defaults(func=cmd_reproduce)
-    rm = rp_sub.add_parser("circles-modes", help="default-settings InfoGAIL-POMDP on circle sets of 2 to 6 modes over seeds: "
+    rm = rp_sub.add_parser("circles-modes",
+                           help="default-settings InfoGAIL-POMDP on circle sets of 2 to 6 modes over seeds: "
                                                  "success counts and per-seed figures")
     add_config_flags(rm, CirclesModesConfig)
     rm.set_defaults(func=cmd_reproduce)
-    rh = rp_sub.add_parser("hopper", help="Figure 2c: every learner over seeds on the shipped Hopper demos, table and curves")
+    rh = rp_sub.add_parser("hopper",
+                           help="Figure 2c: every learner over seeds on the shipped Hopper demos, table and curves")
     add_config_flags(rh, HopperReproConfig)
     rh.set_defaults(func=cmd_reproduce)
-    rt = rp_sub.add_parser("tasks", help="the Hopper protocol on any multi-task demonstrations (--demos, --out; e.g. HalfCheetah)")
+    rt = rp_sub.add_parser("tasks",
+                           help="the Hopper protocol on any multi-task demonstrations (--demos, --out; e.g. "
+                                "HalfCheetah)")
     add_config_flags(rt, HopperReproConfig)
     rt.set_defaults(func=cmd_reproduce)
     return p

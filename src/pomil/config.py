@@ -47,7 +47,8 @@ class Interval(NamedTuple):
         low, high = float(m.group(2)), float(m.group(3))
         if math.isnan(low) or math.isnan(high) or low > high:
             raise ValueError(f"interval {text!r}: bounds out of order")
-        return cls(low, high, m.group(1) == "(", m.group(4) == ")", f"{m.group(1)}{m.group(2)}, {m.group(3)}{m.group(4)}")
+        return cls(low, high, m.group(1) == "(", m.group(4) == ")",
+                   f"{m.group(1)}{m.group(2)}, {m.group(3)}{m.group(4)}")
 
     def __contains__(self, x: object) -> bool:
         if not isinstance(x, (int, float)) or not math.isfinite(x):  # NaN and inf are in no interval
@@ -294,7 +295,8 @@ class RunConfig:
     demos: str = option("", "demonstrations .npz to imitate (required)")
     env_kwargs: tuple[str, ...] = option((), "environment keywords key=value that replace the demonstrations' "
                                              "(training rollouts, evaluation), e.g. max_episode_steps=200")
-    observation_mask: str = option("", "re-mask the demonstrations' full observations (their states): positions-only or "
+    observation_mask: str = option("",
+                                   "re-mask the demonstrations' full observations (their states): positions-only or "
                                        "indices; '' keeps the demonstrations' own view")
     out: str = option("runs/run", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     seed: int = option(0, "random seed (same seed, same run on CPU)", within="[0, 4294967295]")

@@ -71,13 +71,15 @@ class Demonstrations:
         if act.shape[0] != obs.shape[0]:
             raise DataError("actions", f"expected {obs.shape[0]} rows (one per observation), got {act.shape[0]}")
         if bounds.ndim != 1 or not np.issubdtype(bounds.dtype, np.integer):
-            raise DataError("episode_bounds", f"expected a 1-D integer array, got shape {bounds.shape} dtype {bounds.dtype}")
+            raise DataError("episode_bounds",
+                            f"expected a 1-D integer array, got shape {bounds.shape} dtype {bounds.dtype}")
         if bounds.size < 2:
             raise DataError("episode_bounds", "expected at least one episode, got zero")
         if bounds[0] != 0 or bounds[-1] != obs.shape[0]:
             raise DataError(
                 "episode_bounds",
-                f"expected to start at 0 and end at {obs.shape[0]} (the number of steps), got {bounds[0]}..{bounds[-1]}",
+                f"expected to start at 0 and end at {obs.shape[0]} (the number of steps), "
+                f"got {bounds[0]}..{bounds[-1]}",
             )
         if np.any(np.diff(bounds) <= 0):
             raise DataError("episode_bounds", "expected strictly increasing bounds (no empty episodes)")
@@ -85,7 +87,9 @@ class Demonstrations:
         if self.labels is not None:
             labels = np.asarray(self.labels)
             if labels.shape != (n_ep,) or not np.issubdtype(labels.dtype, np.integer):
-                raise DataError("labels", f"expected ({n_ep},) integers (one per episode), got shape {labels.shape} dtype {labels.dtype}")
+                raise DataError("labels",
+                                f"expected ({n_ep},) integers (one per episode), got shape {labels.shape} dtype "
+                                f"{labels.dtype}")
             object.__setattr__(self, "labels", labels.astype(np.int64))
         if self.states is not None:
             states = np.asarray(self.states)
@@ -188,7 +192,8 @@ class Demonstrations:
                             values[name] = archive[name]
                         except ValueError as err:
                             if "allow_pickle" in str(err):
-                                raise DataError(name, "holds pickled Python objects; expected a numeric array", src) from None
+                                raise DataError(name, "holds pickled Python objects; expected a numeric "
+                                                      "array", src) from None
                             raise DataError(name, f"unreadable ({err})", src) from None
                 metadata: dict[str, Any] = {}
                 if "metadata" in names:
@@ -302,11 +307,13 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
         raise DataError("metadata.env_kwargs", f"expected a JSON object, got {type(kwargs).__name__}", source)
     mask = demos.metadata.get("observation_mask")
     if mask is not None and (not isinstance(mask, list) or not all(isinstance(i, int) for i in mask)):
-        raise DataError("metadata.observation_mask", f"expected null or a list of observation indices, got {mask!r}", source)
+        raise DataError("metadata.observation_mask", f"expected null or a list of observation indices, got {mask!r}",
+                        source)
     try:
         obs_dim, act_dim = env_dims(env_id, kwargs)
     except Exception as err:  # unknown id, bad kwargs: gymnasium raises several types
-        raise DataError("metadata.env_id", f"cannot build {env_id!r} with {kwargs} ({str(err).splitlines()[0][:160]})", source) from None
+        raise DataError("metadata.env_id", f"cannot build {env_id!r} with {kwargs} ({str(err).splitlines()[0][:160]})",
+                        source) from None
     if mask is not None:
         try:
             obs_dim, act_dim = env_dims(env_id, kwargs, mask)
@@ -318,7 +325,8 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
 
         want = state_dim(env_id, kwargs)
         if demos.states.shape[1] != want:
-            raise DataError("states", f"expected {want} columns (the full state of {env_id}), got {demos.states.shape[1]}",
+            raise DataError("states",
+                            f"expected {want} columns (the full state of {env_id}), got {demos.states.shape[1]}",
                             source)
     return env_id, kwargs
 
@@ -348,9 +356,12 @@ def load_training_demos(path: str, env_kwargs: dict[str, Any] | None = None,
                 full_dim, _ = env_dims(str(md.get("env_id")), md.get("env_kwargs") or {})
                 idx = resolve_observation_mask(str(md.get("env_id")), md.get("env_kwargs") or {}, observation_mask)
             except Exception as err:  # unknown env, bad keywords or mask
-                raise DataError("metadata.env_id", f"cannot apply the observation mask ({str(err).splitlines()[0][:160]})", path) from None
+                raise DataError("metadata.env_id",
+                                f"cannot apply the observation mask ({str(err).splitlines()[0][:160]})", path) from None
             if demos.states.shape[1] != full_dim:
-                raise DataError("states", f"expected full observations of size {full_dim} to mask, got {demos.states.shape[1]}", path)
+                raise DataError("states",
+                                f"expected full observations of size {full_dim} to mask, got {demos.states.shape[1]}",
+                                path)
             observations = demos.states if idx is None else demos.states[:, idx]
             md["observation_mask"] = idx
         demos = Demonstrations(observations, demos.actions, demos.episode_bounds, demos.labels, demos.states, md)

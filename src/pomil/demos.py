@@ -171,13 +171,16 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
         md = d.metadata
         for key in ("env_id", "observation_mask"):
             if md.get(key) != first.get(key):
-                raise ValueError(f"{name}: metadata.{key} is {md.get(key)!r}, expected {first.get(key)!r} as in {names[0]}")
+                raise ValueError(f"{name}: metadata.{key} is {md.get(key)!r}, expected {first.get(key)!r} as in "
+                                 f"{names[0]}")
         if (d.obs_dim, d.act_dim) != (sources[0].obs_dim, sources[0].act_dim):
-            raise ValueError(f"{name}: obs/act dims {(d.obs_dim, d.act_dim)} differ from {names[0]}'s {(sources[0].obs_dim, sources[0].act_dim)}")
+            raise ValueError(f"{name}: obs/act dims {(d.obs_dim, d.act_dim)} differ from {names[0]}'s "
+                             f"{(sources[0].obs_dim, sources[0].act_dim)}")
         a, b = md.get("env_kwargs") or {}, first.get("env_kwargs") or {}
         differ = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k) and not _is_reward_term(k))
         if differ:
-            raise ValueError(f"{name}: metadata.env_kwargs differ from {names[0]}'s in {differ}; only reward terms may differ")
+            raise ValueError(f"{name}: metadata.env_kwargs differ from {names[0]}'s in {differ}; only reward terms may "
+                             "differ")
         if (d.states is None) != (sources[0].states is None):
             raise ValueError(f"{name}: some files have full states and some not")
     available = np.array([d.num_episodes for d in sources])
@@ -197,7 +200,8 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
         if n == 0:
             continue
         # all episodes in order when a source is used whole, else a random subset
-        chosen = np.arange(d.num_episodes) if n == d.num_episodes else np.sort(rng.choice(d.num_episodes, n, replace=False))
+        chosen = (np.arange(d.num_episodes) if n == d.num_episodes
+                  else np.sort(rng.choice(d.num_episodes, n, replace=False)))
         own = d.metadata.get("label_names") or []
         src_labels = d.labels if d.labels is not None else np.zeros(d.num_episodes, dtype=np.int64)
         for e in chosen:
@@ -216,7 +220,8 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
             for task, value in (d.metadata.get(key) or {}).items():
                 if key == "tasks":
                     if task in table and table[task] != value:
-                        raise ValueError(f"{name}: task {task!r} has environment keywords {value}, another file {table[task]}")
+                        raise ValueError(f"{name}: task {task!r} has environment keywords {value}, another file "
+                                         f"{table[task]}")
                     table[task] = value
                 else:  # episode-weighted mean over the files that hold the task
                     w = weight.get(f"{key}/{task}", 0)
@@ -227,7 +232,8 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
     metadata = {**first, **{k: v for k, v in merged_md.items() if v},
                 "label_names": label_names,
                 "source": "merge of " + "; ".join(f"{n} episodes of {name}" for name, n in zip(names, take)),
-                "merged_from": [{"file": name, "episodes": int(n), "source": d.metadata.get("source")} for d, n, name in zip(sources, take, names)]}
+                "merged_from": [{"file": name, "episodes": int(n),
+                                 "source": d.metadata.get("source")} for d, n, name in zip(sources, take, names)]}
     return Demonstrations(
         observations=np.concatenate([pieces_obs[i] for i in order]),
         actions=np.concatenate([pieces_act[i] for i in order]),
@@ -239,7 +245,8 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
 
 
 def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", seed: int = 0,
-                        observation_mask: str | list[int] = "positions-only", reference_episodes: int = 100) -> Demonstrations:
+                        observation_mask: str | list[int] = "positions-only",
+                        reference_episodes: int = 100) -> Demonstrations:
     """Equal numbers of episodes from each Hopper task's expert (checkpoint paths
     by task name), shuffled: :func:`record_expert_demos` in the task's
     ``setting`` for each, then :func:`merge_demos`."""
@@ -250,7 +257,8 @@ def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting
     for j, (task, path) in enumerate(experts.items()):
         expert = TrainedPolicy.load(path)
         if expert.obs_dim != 11 or expert.env.get("id") != HOPPER_ID:
-            raise PomilError(f"{path}: expected a Hopper expert on the full 11-number observation, got obs_dim {expert.obs_dim}")
+            raise PomilError(f"{path}: expected a Hopper expert on the full 11-number observation, got obs_dim "
+                             f"{expert.obs_dim}")
         recordings.append(_record_policy(expert, path, hopper_kwargs(task, setting), episodes_per_task, task,
                                          observation_mask, seed, seed + 1000 * j, reference_episodes))
     demos = merge_demos(recordings, seed=seed, names=list(experts.values()))

@@ -89,7 +89,8 @@ def export_minari(demos: Demonstrations, dataset_id: str, root: str | Path | Non
 
         target = Path(get_dataset_path(dataset_id))
         if (target / "data").exists():
-            raise PomilError(f"export: Minari dataset {dataset_id!r} already exists at {target}; choose another id or delete it")
+            raise PomilError(f"export: Minari dataset {dataset_id!r} already exists at {target}; choose another id or "
+                             "delete it")
         env = gym.make(env_id, **kwargs)
         try:
             limit = env.spec.max_episode_steps
@@ -126,7 +127,8 @@ def _check_id(dataset_id: str) -> None:
     try:
         _, _, version = parse_dataset_id(dataset_id)
     except Exception:
-        raise PomilError(f"export: {dataset_id!r} is not a Minari dataset id (expected [namespace/]name-vN, e.g. pomil/hopper-v0)") from None
+        raise PomilError(f"export: {dataset_id!r} is not a Minari dataset id (expected [namespace/]name-vN, e.g. "
+                         "pomil/hopper-v0)") from None
     if version is None:
         raise PomilError(f"export: {dataset_id!r} needs a version (expected [namespace/]name-vN, e.g. pomil/hopper-v0)")
 
@@ -137,7 +139,8 @@ def _set_metadata(dataset_path: Path, values: dict[str, Any]) -> None:
     MinariStorage.read(dataset_path / "data").update_metadata(values)
 
 
-def import_minari(dataset_id: str, root: str | Path | None = None, observation_mask: str | list[int] | None = None) -> Demonstrations:
+def import_minari(dataset_id: str, root: str | Path | None = None,
+                  observation_mask: str | list[int] | None = None) -> Demonstrations:
     """Read the local Minari dataset ``dataset_id`` as pomil demonstrations.
 
     Datasets written by :func:`export_minari` come back exactly (mask,
@@ -153,7 +156,8 @@ def import_minari(dataset_id: str, root: str | Path | None = None, observation_m
             dataset = minari.load_dataset(dataset_id)
         except (FileNotFoundError, ValueError) as err:
             where = os.environ.get("MINARI_DATASETS_PATH", "~/.minari/datasets")
-            raise PomilError(f"import: no local Minari dataset {dataset_id!r} under {where} ({str(err).splitlines()[0][:160]})") from None
+            raise PomilError(f"import: no local Minari dataset {dataset_id!r} under {where} "
+                             f"({str(err).splitlines()[0][:160]})") from None
         meta = dataset.storage.metadata
         obs_space = dataset.observation_space
         if not isinstance(obs_space, gym.spaces.Box) or len(obs_space.shape) != 1 or \

@@ -89,7 +89,8 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
             ray_lib.init(address=address or None, include_dashboard=False, logging_level="ERROR",
                          configure_logging=True, log_to_driver=True)
         except (ConnectionError, ValueError, RuntimeError) as err:
-            raise PomilError(f"cannot start or reach Ray{f' at {address}' if address else ''} ({_one_line(err)})") from None
+            where = f" at {address}" if address else ""
+            raise PomilError(f"cannot start or reach Ray{where} ({_one_line(err)})") from None
     threads = max(1, int(cpus_per_job))
     task = ray_lib.remote(_call).options(num_cpus=cpus_per_job, max_retries=1, retry_exceptions=False)
     t_submit = time.perf_counter()

@@ -58,7 +58,9 @@ class LearnerRuns(RayOptions):
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
                                        "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
     bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)", within="[0, inf)")
-    adversarial_iterations: int = option(0, "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's default)",
+    adversarial_iterations: int = option(0,
+                                         "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's "
+                                         "default)",
                                          within="[0, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
 
@@ -135,19 +137,22 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, list[float]]:
 def markdown_table(results: dict[str, Any]) -> str:
     n = results["seeds"]
     lines = [
-        "| learner | successes | per-code purity | min purity | modes covered | NMI(code, mode) | none share | wall s / seed |",
+        "| learner | successes | per-code purity | min purity | modes covered | NMI(code, mode) | none share "
+        "| wall s / seed |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results["learners"].items():
         s = r["summary"]
         fmt = lambda k, p=2: f"{s[k][0]:.{p}f} ± {s[k][1]:.{p}f}"  # noqa: E731
         wins = sum(modes_success(run) for run in r["runs"])
-        lines.append(f"| {name} | {wins}/{len(r['runs'])} | {fmt('mean_purity')} | {fmt('min_purity')} | {fmt('modes_covered', 1)} | "
+        lines.append(f"| {name} | {wins}/{len(r['runs'])} | {fmt('mean_purity')} | {fmt('min_purity')} | "
+                     f"{fmt('modes_covered', 1)} | "
                      f"{fmt('nmi')} | {fmt('overall_none_share')} | {np.mean(r['wall_s']):.0f} |")
     lines.append("")
     lines.append(f"mean ± std over {n} seed(s); {results['episodes_per_code']} stochastic rollouts per code; "
                  f"learners without latent codes are scored as a single code (NMI 0 by definition). A seed succeeds "
-                 f"when its min purity is >= {MODES_SUCCESS['min_purity']}, every mode is covered and NMI >= {MODES_SUCCESS['nmi']}.")
+                 f"when its min purity is >= {MODES_SUCCESS['min_purity']}, every mode is covered and NMI >= "
+                 f"{MODES_SUCCESS['nmi']}.")
     return "\n".join(lines) + "\n"
 
 
@@ -160,18 +165,21 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
         print(f"recorded {demos_path}: {demos.num_episodes} expert episodes")
     demos = Demonstrations.load(demos_path)
     if demos.metadata.get("env_id") != CIRCLES_ID:
-        raise PomilError(f"{demos_path}: field 'metadata.env_id': expected {CIRCLES_ID!r}, got {demos.metadata.get('env_id')!r}")
+        raise PomilError(f"{demos_path}: field 'metadata.env_id': expected {CIRCLES_ID!r}, got "
+                         f"{demos.metadata.get('env_id')!r}")
     results: dict[str, Any] = {
         "experiment": "circles", "config": to_dict(cfg), "seeds": cfg.seeds,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path),
-        "adversarial_settings": {k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
-                                 if k not in ("learner", "out", "seed", "progress")},
+        "adversarial_settings": {
+            k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
+            if k not in ("learner", "out", "seed", "progress")},
         "machine": {"python": sys.version.split()[0], "platform": platform.platform()},
         "learners": {},
     }
     rollouts: dict[str, np.ndarray] = {}
     T = int(demos.episode_lengths[0])
-    rollouts["experts/positions"] = (demos.states.reshape(demos.num_episodes, T, -1)[:, 1:, :2] if demos.states is not None
+    rollouts["experts/positions"] = (demos.states.reshape(demos.num_episodes, T,
+                                                          -1)[:, 1:, :2] if demos.states is not None
                                      else np.zeros((0, T - 1, 2)))
     rollouts["experts/groups"] = demos.labels if demos.labels is not None else np.zeros(0, np.int64)
 
@@ -281,7 +289,8 @@ def _modes_job(cfg: CirclesModesConfig, case: str, seed: int) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     run_dir = Path(cfg.runs) / case / f"seed{seed}"
-    ckpt = train_adversarial(adversarial_config(cfg, cfg.learner, seed, run_dir, demos=str(Path(cfg.runs) / f"{case}.npz")))
+    ckpt = train_adversarial(adversarial_config(cfg, cfg.learner, seed, run_dir,
+                                                demos=str(Path(cfg.runs) / f"{case}.npz")))
     wall = time.perf_counter() - t0
     metrics, _ = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
     metrics.update(checkpoint=str(ckpt), train_seed=seed, success=modes_success(metrics))
@@ -289,7 +298,8 @@ def _modes_job(cfg: CirclesModesConfig, case: str, seed: int) -> dict[str, Any]:
 
 
 def modes_table(results: dict[str, Any]) -> str:
-    lines = ["| case | modes | successes | min purity | mean purity | modes covered | NMI | none share | wall s / seed |",
+    lines = ["| case | modes | successes | min purity | mean purity | modes covered | NMI | none share "
+             "| wall s / seed |",
              "|---|---|---|---|---|---|---|---|---|"]
     for case, r in results["cases"].items():
         runs = r["runs"]
@@ -372,7 +382,8 @@ class HopperReproConfig(LearnerRuns):
 
     def path(self, name: str) -> Path:
         suffix = "" if self.setting == "paper" else f"-{self.setting}"
-        defaults = {"out": f"runs/results/hopper{suffix}", "runs": f"runs/{Path(self.out).name}" if self.out else f"runs/hopper{suffix}",
+        defaults = {"out": f"runs/results/hopper{suffix}",
+                    "runs": f"runs/{Path(self.out).name}" if self.out else f"runs/hopper{suffix}",
                     "demos": f"data/hopper-{self.setting}.npz"}
         return Path(getattr(self, name) or defaults[name])
 
@@ -416,16 +427,19 @@ def task_summary(runs: list[dict[str, Any]], tasks: list[str]) -> dict[str, dict
 
 def hopper_table(results: dict[str, Any]) -> str:
     tasks = results["tasks"]
-    head = "| learner | " + " | ".join(f"{t}: norm. return | {t}: progress | {t}: displacement" for t in tasks) + " | wall s / seed |"
+    head = ("| learner | " + " | ".join(f"{t}: norm. return | {t}: progress | {t}: displacement" for t in tasks)
+            + " | wall s / seed |")
     lines = [head, "|---|" + "---|" * (3 * len(tasks)) + "---|"]
     for name, r in results["learners"].items():
         s = r["summary"]
         cells = [f"{s[t][m][0]:.2f} ± {s[t][m][1]:.2f}" for t in tasks for m in METRICS]
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {np.mean(r['wall_s']):.0f} |")
-    lines += ["", f"mean ± std over {results['seeds']} seed(s), {results['setting']} setting; each task scored for the code "
-              f"matched to it ({results['episodes_per_code']} deterministic episodes per code and task). Expert returns: "
-              + ", ".join(f"{t} {v:.1f}" for t, v in results["reference"]["expert_returns"].items())
-              + "; zero-action returns: " + ", ".join(f"{t} {v:.1f}" for t, v in results["reference"]["still_returns"].items()) + "."]
+    reference = results["reference"]
+    lines += ["", f"mean ± std over {results['seeds']} seed(s), {results['setting']} setting; each task scored for "
+              f"the code matched to it ({results['episodes_per_code']} deterministic episodes per code and task). "
+              "Expert returns: " + ", ".join(f"{t} {v:.1f}" for t, v in reference["expert_returns"].items())
+              + "; zero-action returns: " + ", ".join(f"{t} {v:.1f}" for t, v in reference["still_returns"].items())
+              + "."]
     return "\n".join(lines) + "\n"
 
 
@@ -457,11 +471,13 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     out = cfg.path("out")
     results: dict[str, Any] = {
         "experiment": "hopper" if env_family(str(demos.metadata.get("env_id"))).name == "hopper" else "tasks",
-        "env_id": demos.metadata.get("env_id"), "setting": demos.metadata.get("setting", cfg.setting), "config": to_dict(cfg),
+        "env_id": demos.metadata.get("env_id"), "setting": demos.metadata.get("setting", cfg.setting),
+                               "config": to_dict(cfg),
         "seeds": cfg.seeds, "tasks": tasks,
         "episodes_per_code": cfg.episodes_per_code, "demos": str(demos_path), "reference": reference,
-        "adversarial_settings": {k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
-                                 if k not in ("learner", "out", "seed", "progress")},
+        "adversarial_settings": {
+            k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
+            if k not in ("learner", "out", "seed", "progress")},
         "machine": {"python": sys.version.split()[0], "platform": platform.platform()},
         "learners": {},
     }

@@ -36,9 +36,11 @@ from pomil.training import write_json
 
 @dataclass(frozen=True)
 class SweepConfig:
-    out: str = option("runs/sweep", "sweep directory: one folder per setting and seed, sweep.json, table.md, figure.png")
+    out: str = option("runs/sweep",
+                      "sweep directory: one folder per setting and seed, sweep.json, table.md, figure.png")
     seeds: int = option(3, "training seeds per setting (0 .. seeds-1)", within="[1, inf)")
-    ray: bool = option(True, "run on Ray (a local Ray started in-process unless --address); --no-ray: one after another")
+    ray: bool = option(True,
+                       "run on Ray (a local Ray started in-process unless --address); --no-ray: one after another")
     address: str = option("", "address of an existing Ray cluster (paths must be on storage every node sees)")
     cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)", within="(0, inf)")
     episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run",
@@ -70,7 +72,8 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
     from pomil.envs import evaluation_kind
 
     trainer = LEARNERS[learner]
-    cfg = trainer.make_config({**values, "out": run_dir, "seed": seed, "progress": False}, source=f"sweep run {run_dir}")
+    cfg = trainer.make_config({**values, "out": run_dir, "seed": seed, "progress": False},
+                              source=f"sweep run {run_dir}")
     t0 = time.perf_counter()
     # A checkpoint without result.json is a run whose worker died (Ray retries it) or that
     # was interrupted: continue it from its last checkpoint instead of starting over.
@@ -80,7 +83,8 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
     ckpt = trainer.train(cfg, resume=resume)
     wall = time.perf_counter() - t0
     policy = TrainedPolicy.load(ckpt)
-    result: dict[str, Any] = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "checkpoint": str(ckpt)}
+    result: dict[str, Any] = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall,
+                              "checkpoint": str(ckpt)}
     demos = Demonstrations.load(cfg.demos)
     kind = evaluation_kind(policy.env.get("id", ""), demos.metadata)
     if kind == "circles":
@@ -133,7 +137,8 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
             names.append(name)
     print(f"sweep: {len(settings)} setting(s) x {cfg.seeds} seed(s) = {len(settings) * cfg.seeds} runs; "
           f"{len(finished)} finished before, skipped; {len(jobs)} to run "
-          f"{'on Ray' + (f' at {cfg.address}' if cfg.address else ' (local)') if cfg.ray else 'one after another'}", flush=True)
+          f"{'on Ray' + (f' at {cfg.address}' if cfg.address else ' (local)') if cfg.ray else 'one after another'}",
+          flush=True)
 
     def report(r, n, total) -> None:
         state = f"done in {r.wall_s:.0f} s" if r.ok else f"FAILED: {r.error}"
@@ -142,7 +147,8 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
     results = run_jobs(run_one, jobs, names, ray=cfg.ray, address=cfg.address or None,
                        cpus_per_job=cfg.cpus_per_run, on_done=report) if jobs else []
     runs = {**{n: {"status": "skipped (finished before)", **r} for n, r in finished.items()},
-            **{r.name: ({"status": "done", **r.value} if r.ok else {"status": "failed", "error": r.error, "details": r.details[-4000:]})
+            **{r.name: ({"status": "done", **r.value} if r.ok else {"status": "failed", "error": r.error,
+                                                                    "details": r.details[-4000:]})
                for r in results}}
     failed = [n for n, r in runs.items() if r["status"] == "failed"]
     summary = {setting_name(s): _summarise([runs[f"{setting_name(s)} seed {k}"] for k in range(cfg.seeds)
@@ -158,7 +164,8 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
     print(table)
     print(f"wrote {out}/sweep.json, table.md, figure.png in {report_data['wall_time_s']:.0f} s")
     if failed:
-        print(f"sweep: {len(failed)} run(s) FAILED: " + "; ".join(f"{n}: {runs[n]['error']}" for n in failed), flush=True)
+        print(f"sweep: {len(failed)} run(s) FAILED: " + "; ".join(f"{n}: {runs[n]['error']}" for n in failed),
+              flush=True)
     return report_data
 
 
@@ -191,12 +198,14 @@ def sweep_table(data: dict[str, Any]) -> str:
         lines += ["| setting | seeds | " + " | ".join(f"{t}: {m}" for t in tasks for m in METRICS) + " |",
                   "|---|---|" + "---|" * (len(tasks) * len(METRICS))]
         for name, s in data["summary"].items():
-            cells = [f"{s['tasks'][t][m][0]:.2f} ± {s['tasks'][t][m][1]:.2f}" if s["seeds"] else "-" for t in tasks for m in METRICS]
+            cells = [f"{s['tasks'][t][m][0]:.2f} ± {s['tasks'][t][m][1]:.2f}" if s["seeds"] else "-"
+                     for t in tasks for m in METRICS]
             lines.append(f"| {name} | {s['seeds']} | " + " | ".join(cells) + " |")
     else:
         lines += ["| setting | seeds |", "|---|---|"] + [f"| {n} | {s['seeds']} |" for n, s in data["summary"].items()]
+    failed = f" ({', '.join(data['failed'])})" if data["failed"] else ""
     lines += ["", f"mean ± std over the seeds that finished ({data['learner']}, {data['seeds']} seed(s) per setting); "
-              f"failed runs: {len(data['failed'])}" + (f" ({', '.join(data['failed'])})" if data["failed"] else "") + "."]
+              f"failed runs: {len(data['failed'])}{failed}."]
     return "\n".join(lines) + "\n"
 
 
@@ -221,7 +230,9 @@ def _figure(data: dict[str, Any], path: Path) -> None:
         from pomil.eval.plots import learning_curves
 
         demos = Demonstrations.load(data["base"]["demos"])
-        learners = {s: {"curves": [r["curve"] for n, r in ok.items() if n.startswith(f"{s} seed")], "summary": v["tasks"]}
+        learners = {s: {"curves": [r["curve"] for n, r in ok.items() if n.startswith(f"{s} seed")],
+                        "summary": v["tasks"]}
                     for s, v in data["summary"].items() if v["seeds"]}
-        learning_curves({"tasks": list(demos.metadata["tasks"]), "learners": learners, "env_id": demos.metadata["env_id"],
+        learning_curves({"tasks": list(demos.metadata["tasks"]), "learners": learners,
+                         "env_id": demos.metadata["env_id"],
                          "setting": demos.metadata.get("setting", ""), "reference": reference_of(demos.metadata)}, path)

@@ -1,5 +1,7 @@
-"""What every learner shares: seeding, logging, progress, checkpoints, resume,
-the divergence guard and the run directory's lock.
+"""What every learner shares: the run loop (:class:`RunLoop`: seeding, the run directory's
+lock, config.json, resume, the cadence of evaluation, logging and checkpoints, and the one
+checkpoint schema, :meth:`RunLoop.state`), and the pieces it is made of: logging and
+progress, atomic checkpoints, resume, the divergence guard and the lock.
 
 A run directory holds::
 
@@ -29,7 +31,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
-from pomil.config import saved_config
+from pomil.config import saved_config, to_dict
 from pomil.data import atomic_write
 from pomil.errors import DivergenceError, PomilError, RunBusyError
 
@@ -116,10 +118,12 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except Exception as err:  # torch raises many types for foreign/corrupt files
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise PomilError(f"{path}: not a pomil checkpoint ({first[:160]})") from None
-    if not isinstance(payload, dict) or not isinstance(payload.get("format"), str) or payload["format"] != CHECKPOINT_FORMAT:
+    if not isinstance(payload, dict) or not isinstance(payload.get("format"),
+                                                       str) or payload["format"] != CHECKPOINT_FORMAT:
         raise PomilError(f"{path}: not a pomil checkpoint (missing 'format: {CHECKPOINT_FORMAT}')")
     if type(payload.get("version")) is not int or payload["version"] != CHECKPOINT_VERSION:
-        raise PomilError(f"{path}: checkpoint version {payload.get('version')} is not supported (expected {CHECKPOINT_VERSION})")
+        raise PomilError(f"{path}: checkpoint version {payload.get('version')} is not supported (expected "
+                         f"{CHECKPOINT_VERSION})")
     bad = first_nonfinite({k: v for k, v in payload.items() if k != "config"})
     if bad is not None:
         raise PomilError(f"{path}: '{bad}' holds NaN/inf (the run that wrote it diverged); "
@@ -145,7 +149,8 @@ def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str 
         raise TypeError("config")
     if config_class is not None:
         saved = saved_config(config_class, saved)
-    changed = sorted(k for k in set(config) | set(saved) if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
+    changed = sorted(k for k in set(config) | set(saved)
+                     if saved.get(k) != config.get(k) and k not in RESUMABLE_CHANGES)
     if changed:
         raise PomilError(f"{path}: cannot resume with a different config (changed: {', '.join(changed)})")
 
@@ -181,7 +186,8 @@ def resume_run(
     if not isinstance(done, int) or isinstance(done, bool) or done < 0:
         raise PomilError(f"{ckpt_path}: checkpoint has no usable 'iteration' (got {done!r})")
     if config.get("iterations", done) < done:
-        raise PomilError(f"{ckpt_path}: the checkpoint is at iteration {done}, past --iterations {config['iterations']}; "
+        raise PomilError(f"{ckpt_path}: the checkpoint is at iteration {done}, past --iterations "
+                         f"{config['iterations']}; "
                          f"nothing to resume (pass --iterations above {done} to continue; the checkpoint is unchanged)")
     try:
         saved_nets = ckpt.get("nets", {"policy": ckpt.get("policy")})
@@ -291,7 +297,8 @@ class DivergenceGuard:
         hint = self.hints.get(quantity.split()[0], "")
         lower = ("a lower " + hint.split(" (")[0]) if hint.count("(now") == 1 else "lower learning rates"
         if self.saved_iteration > 0 and self.ckpt_path.exists():
-            after = f"{self.ckpt_path} (iteration {self.saved_iteration}) is unchanged: continue it with --resume and {lower}"
+            after = (f"{self.ckpt_path} (iteration {self.saved_iteration}) is unchanged: "
+                     f"continue it with --resume and {lower}")
         else:
             after = f"no checkpoint of this run was written: start it again with {lower}"
         raise DivergenceError(f"{where}: {quantity} is {bad} (the run diverged); "
@@ -360,7 +367,8 @@ class RunLock:
         if previous:
             what = ("continuing from its last checkpoint" if resume else
                     "starting over (--resume would continue from its last checkpoint)")
-            print(f"pomil: note: {self.path} was left by pid {previous.get('pid', '?')} on {previous.get('host', '?')}, "
+            print(f"pomil: note: {self.path} was left by pid {previous.get('pid', '?')} on "
+                  f"{previous.get('host', '?')}, "
                   f"which is no longer running; taking it over and {what}", file=sys.stderr)
 
     @staticmethod
@@ -455,3 +463,138 @@ class RunLogger:
 def write_json(path: str | Path, obj: Any) -> None:
     data = (json.dumps(obj, indent=2, sort_keys=False) + "\n").encode()
     atomic_write(Path(path), lambda f: f.write(data))
+
+
+# -------------------------------------------------------------------- run loop
+class RunLoop:
+    """One run of a learner in its run directory: everything BC, experts and adversarial
+    learners share, so that a learner writes only its networks and its per-iteration update.
+
+    Used as::
+
+        with RunLoop(cfg, algo="bc", resume=resume, hints={...}) as loop:  # device resolved; lock released at the end
+            ...                              # environment / demonstrations
+            gen = loop.seed()                # torch, random, numpy; the generator every sample is drawn from
+            ...                              # networks and optimisers
+            if not loop.start(env=..., nets={"policy": ..., ...}, optimizers={...}):
+                return loop.ckpt_path        # its checkpoint is at the last iteration already
+            return loop.run(update, desc=..., key_stats=...)
+
+    :meth:`start` takes the run directory's lock, restores networks, optimisers and RNGs
+    from the checkpoint under ``--resume`` and writes ``config.json``.  :meth:`run` opens the
+    log and calls ``update(iteration) -> stats``, then, each iteration: the divergence
+    guard's check of every parameter; an evaluation every ``eval_every`` iterations and at
+    the end; a log row every ``log_every`` iterations, at the first and the last, and
+    with every evaluation; a checkpoint every ``checkpoint_every`` iterations and at the end.
+    ``loop.guard`` is the run's divergence guard (it names the last checkpoint written);
+    ``loop.env_steps`` counts the environment steps of a learner that collects them (the
+    update adds its own; ``None`` for one that does not), across resumes.
+    """
+
+    def __init__(self, config: Any, *, algo: str, resume: bool = False, hints: dict[str, str]) -> None:
+        self.config, self.algo, self.resume = config, algo, resume
+        self.dir = Path(config.out)
+        self.ckpt_path = self.dir / "checkpoint.pt"
+        self.device = resolve_device(config.device)
+        self.lock = RunLock(self.dir)
+        self.guard = DivergenceGuard(self.ckpt_path, hints)
+        self.iteration = 0  # the last iteration done: 0, the checkpoint's once resumed, then each one run
+        self.env_steps: int | None = None
+        self.generator = torch.Generator()
+        self.logger: RunLogger | None = None
+        self.env: dict[str, Any] = {}
+        self.nets: dict[str, Any] = {}
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+
+    def __enter__(self) -> "RunLoop":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.lock.release()
+
+    def seed(self) -> torch.Generator:
+        """Seed torch's global RNG (network initialisation); the run's generator (:func:`seed_everything`)."""
+        self.generator = seed_everything(self.config.seed)
+        return self.generator
+
+    def start(self, *, env: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, torch.optim.Optimizer],
+              env_steps: bool = True) -> bool:
+        """Take the lock, resume (under ``--resume``) and write ``config.json``; False when the checkpoint
+        is at the last iteration already (nothing to do: a note says so).
+
+        ``env``: the environment's id, kwargs and observation_mask; ``nets``: every network by name, the
+        policy as ``policy`` (None entries skipped); ``env_steps``: whether the learner counts them."""
+        self.env, self.nets, self.optimizers = env, nets, optimizers
+        self.lock.acquire(self.resume)
+        config = to_dict(self.config)
+        begun = (resume_run(self.ckpt_path, config, nets, optimizers, self.generator, self.device, type(self.config))
+                 if self.resume else RunStart())
+        self.iteration = begun.iteration
+        self.env_steps = begun.env_steps if env_steps else None
+        self.guard.saved(begun.iteration)
+        if begun.iteration == self.config.iterations:
+            print(f"pomil: note: {self.ckpt_path} is already at iteration {begun.iteration}: nothing to do",
+                  file=sys.stderr)
+            return False
+        write_json(self.dir / "config.json", {"algo": self.algo, **config})
+        return True
+
+    def run(self, update: Callable[[int], dict[str, float]], *, desc: str, key_stats: tuple[str, ...] = (),
+            first_row: dict[str, float] | None = None, evaluate: Callable[[Any], dict[str, float]] | None = None,
+            eval_every: int = 0, log_extras: Callable[[], dict[str, float]] | None = None) -> Path:
+        """The iterations after :meth:`start`; returns the checkpoint path.
+
+        A fresh run logs row 0 first: ``first_row`` (a warm start's figures) and the evaluation
+        of the initial policy.  ``evaluate(policy) -> stats``; ``log_extras() -> stats``: figures
+        added to each log row after the wall-clock ones."""
+        cfg = self.config
+        self.logger = logger = RunLogger(self.dir, cfg.iterations, self.iteration, cfg.progress, desc=desc,
+                                         key_stats=key_stats)
+        self.guard.on_stop = logger.close
+        if self.iteration == 0:
+            row = dict(first_row or {})
+            if evaluate is not None:
+                row.update(evaluate(self.nets["policy"]), **{"eval/env_steps": 0.0})
+            if row:
+                logger.log(0, row)
+        t_start = time.perf_counter()
+        for it in range(self.iteration + 1, cfg.iterations + 1):
+            stats = update(it)
+            self.guard.params(it, self.nets)
+            self.iteration = it
+            evaluated = evaluate is not None and eval_every > 0 and (it % eval_every == 0 or it == cfg.iterations)
+            if evaluated:
+                stats.update(evaluate(self.nets["policy"]), **{"eval/env_steps": float(self.env_steps or 0)})
+            if it % cfg.log_every == 0 or it in (1, cfg.iterations) or evaluated:
+                stats.update(self._rates(time.perf_counter() - t_start), **(log_extras() if log_extras else {}))
+                logger.log(it, stats)
+            if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
+                save_run_checkpoint(self.ckpt_path, logger, self.guard, it, self.state())
+            logger.update()
+        logger.close()
+        return self.ckpt_path
+
+    def _rates(self, elapsed: float) -> dict[str, float]:
+        rates = {"time/elapsed_s": elapsed}
+        if self.env_steps is not None:
+            rates["time/env_steps_per_s"] = self.env_steps / max(elapsed, 1e-9)
+        return rates
+
+    def state(self) -> dict[str, Any]:
+        """The checkpoint (version 1) of every learner, less its iteration: ``algo``, ``config``,
+        ``env``, ``policy_arch``, ``policy`` (what :class:`pomil.TrainedPolicy` loads), ``optimizers``
+        and ``rng`` (what ``--resume`` restores); ``nets`` (every network by name) when there is more
+        than the policy; ``obs_norm`` when the policy normalises its observations (experts);
+        ``env_steps`` when the learner counts them."""
+        policy = self.nets["policy"]
+        payload = {"algo": self.algo, "config": to_dict(self.config), "env": self.env,
+                   "policy_arch": policy.arch.to_dict(), "policy": policy.state_dict()}
+        if set(self.nets) != {"policy"}:
+            payload["nets"] = {k: net.state_dict() for k, net in self.nets.items() if net is not None}
+        if self.nets.get("obs_norm") is not None:
+            payload["obs_norm"] = self.nets["obs_norm"].state_dict()
+        payload["optimizers"] = {k: opt.state_dict() for k, opt in self.optimizers.items()}
+        payload["rng"] = rng_state(self.generator)
+        if self.env_steps is not None:
+            payload["env_steps"] = self.env_steps
+        return payload

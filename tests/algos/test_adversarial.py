@@ -35,7 +35,8 @@ def test_critic_steps_increase_the_wasserstein_estimate(encoder, clip, gp, opt):
     expert = seq_batch(torch.randn(12, 32, 2, generator=g) + 1.0, torch.randn(12, 32, 2, generator=g))
     policy = as_rollout(torch.randn(12, 32, 2, generator=g) - 1.0, torch.randn(12, 32, 2, generator=g))
     critic = heads.critic(2, 2, encoder, 32)
-    optim = torch.optim.RMSprop(critic.parameters(), lr=5e-3) if opt == "rmsprop" else torch.optim.Adam(critic.parameters(), lr=1e-3)
+    optim = torch.optim.RMSprop(critic.parameters(),
+                                lr=5e-3) if opt == "rmsprop" else torch.optim.Adam(critic.parameters(), lr=1e-3)
     _, first = critic_loss(critic, expert, policy, "wasserstein", gp)
     for _ in range(30):
         loss, _ = critic_loss(critic, expert, policy, "wasserstein", gp)
@@ -58,7 +59,8 @@ def test_posterior_learns_codes_from_code_dependent_sequences():
     codes = torch.arange(N) % K
     # the code shows only in the drift of the observations over time, not in any single step
     drift = torch.tensor([-1.0, 0.0, 1.0])[codes]
-    obs = (torch.arange(T).view(T, 1, 1) * drift.view(1, N, 1) * 0.3 + torch.randn(T, N, 1, generator=g) * 0.3).expand(T, N, 2).contiguous()
+    noise = torch.randn(T, N, 1, generator=g) * 0.3
+    obs = (torch.arange(T).view(T, 1, 1) * drift.view(1, N, 1) * 0.3 + noise).expand(T, N, 2).contiguous()
     act = torch.randn(T, N, 2, generator=g)
     batch = as_rollout(obs, act)
     post = heads.posterior(2, 2, K, "gru", 32)
@@ -85,7 +87,8 @@ def _cfg(demos_path, out, **kw):
 @pytest.mark.parametrize("mode", ["sequence", "window"])
 def test_every_learner_runs_a_few_iterations_through_the_cli(learner, mode, demos_path, tmp_path):
     out = tmp_path / learner
-    code = main(["train", learner, "--demos", str(demos_path), "--out", str(out), "--iterations", "3", "--num-envs", "8",
+    code = main(["train", learner, "--demos", str(demos_path), "--out", str(out), "--iterations", "3",
+                 "--num-envs", "8",
                  "--hidden-size", "16", "--critic-steps", "1", "--ppo-epochs", "1", "--update-mode", mode,
                  "--window-length", "5", "--eval-every", "2", "--eval-episodes", "4", "--bc-init-iterations", "2",
                  "--no-progress"])
@@ -111,7 +114,8 @@ def test_adversarial_same_seed_same_run_and_resume(demos_path, tmp_path):
 def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_path):
     m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), 2, 2, 2, "cpu")
     env = make_vec_env("pomil/Circles-v0", {}, 8)
-    roll, _, _, env_rewards = collect(env, m.policy, m.value, 2, executed_actions_fn("pomil/Circles-v0", {}), torch.Generator().manual_seed(0),
+    roll, _, _, env_rewards = collect(env, m.policy, m.value, 2, executed_actions_fn("pomil/Circles-v0", {}),
+                                      torch.Generator().manual_seed(0),
                                      torch.device("cpu"))
     norms = roll.executed_actions.norm(dim=-1)
     torch.testing.assert_close(norms, torch.ones_like(norms))  # expert demonstrations hold unit vectors too
@@ -129,7 +133,8 @@ def test_bc_warm_start_puts_the_policy_on_the_circles(demos_path, tmp_path):
 
     none = {}
     for warm in (0, 250):
-        ckpt = train_adversarial(_cfg(demos_path, tmp_path / str(warm), learner="infogail", iterations=1, hidden_size=64,
+        ckpt = train_adversarial(_cfg(demos_path, tmp_path / str(warm), learner="infogail", iterations=1,
+                                      hidden_size=64,
                                       bc_init_iterations=warm, num_envs=32, eval_every=0))
         metrics, _ = evaluate_circles(TrainedPolicy.load(ckpt), 20, seed=0)
         none[warm] = metrics["overall_none_share"]
@@ -147,22 +152,27 @@ def test_mixture_warm_start_ties_codes_to_modes_and_trains_the_posterior(demos_p
 
     nmi = {}
     for codes in ("random", "mixture"):
-        ckpt = train_adversarial(_cfg(demos_path, tmp_path / codes, iterations=1, hidden_size=32, bc_init_iterations=150,
+        ckpt = train_adversarial(_cfg(demos_path, tmp_path / codes, iterations=1, hidden_size=32,
+                                      bc_init_iterations=150,
                                       posterior_init_iterations=50, bc_init_codes=codes, eval_every=0))
         nmi[codes] = evaluate_circles(TrainedPolicy.load(ckpt), 100, seed=0)[0]["nmi"]
         with open(tmp_path / codes / "metrics.csv", newline="") as f:
             warm, first = list(csv.DictReader(f))[:2]
     assert nmi["random"] < 0.1 and nmi["mixture"] > 0.5, nmi
     assert warm["iteration"] == "0" and first["iteration"] == "1"  # row 0: the warm start
-    assert float(warm["init/bc_code_share_min"]) == pytest.approx(0.5, abs=0.05)  # codes split the demonstrations evenly
+    assert float(warm["init/bc_code_share_min"]) == pytest.approx(0.5,
+                                                                  abs=0.05)  # codes split the demonstrations evenly
     assert float(warm["init/posterior_accuracy"]) > 0.9  # on the demonstrations, labelled by their most likely code
-    assert float(first["posterior/accuracy"]) > 0.7  # on the policy's first rollout: the codes already behave differently
+    # on the policy's first rollout: the codes already behave differently
+    assert float(first["posterior/accuracy"]) > 0.7
 
 
 def test_policy_warmup_leaves_the_policy_alone_while_value_critic_and_posterior_learn(demos_path, tmp_path):
-    cfg = _cfg(demos_path, tmp_path / "warm", iterations=2, policy_warmup_iterations=2, bc_init_iterations=5, eval_every=0)
+    cfg = _cfg(demos_path, tmp_path / "warm", iterations=2, policy_warmup_iterations=2, bc_init_iterations=5,
+               eval_every=0)
     warm = load_checkpoint(train_adversarial(cfg))
-    start = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "start", iterations=1, policy_warmup_iterations=2,
+    start = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "start", iterations=1,
+                                                   policy_warmup_iterations=2,
                                                    bc_init_iterations=5, eval_every=0)))
     init = {k: v.clone() for k, v in start["nets"]["value"].items()}
     for k, v in warm["policy"].items():  # same seed, same warm start: the policy is exactly the warm-started one
@@ -176,7 +186,8 @@ def test_policy_warmup_leaves_the_policy_alone_while_value_critic_and_posterior_
 def test_bc_weight_adds_the_demonstrations_likelihood_to_the_policy_loss(demos_path, tmp_path):
     import csv
 
-    train_adversarial(_cfg(demos_path, tmp_path / "bc", iterations=2, bc_weight=1.0, bc_init_codes="mixture", eval_every=0))
+    train_adversarial(_cfg(demos_path, tmp_path / "bc", iterations=2, bc_weight=1.0, bc_init_codes="mixture",
+                           eval_every=0))
     with open(tmp_path / "bc" / "metrics.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert all(r["ppo/bc_nll"] and torch.isfinite(torch.tensor(float(r["ppo/bc_nll"]))) for r in rows)
@@ -246,7 +257,8 @@ def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
     policy = GaussianPolicy(PolicyArch(2, 2, "gru", 16, 2))
     codes = torch.eye(2)[torch.arange(6) % 2].expand(12, -1, -1)
     b = as_rollout(torch.randn(12, 6, 2), torch.randn(12, 6, 2), codes)
-    b = b.with_(h0_policy=torch.randn(6, 16), starts=torch.zeros(12, 6, dtype=torch.bool))  # carries on from a stored state
+    b = b.with_(h0_policy=torch.randn(6, 16),
+                starts=torch.zeros(12, 6, dtype=torch.bool))  # carries on from a stored state
     mask = torch.ones(demo_steps, 10, dtype=torch.bool)
     mask[demo_steps - 3:, :4] = False  # some shorter episodes
     demos = PaddedEpisodes(torch.randn(demo_steps, 10, 2), torch.randn(demo_steps, 10, 2), mask)

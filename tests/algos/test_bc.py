@@ -49,7 +49,8 @@ def test_resume_continues_the_same_run(demos_path, tmp_path):
     full = train_bc(_cfg(demos_path, tmp_path / "full", iterations=40, hidden_size=32, checkpoint_every=20))
     half = _cfg(demos_path, tmp_path / "split", iterations=20, hidden_size=32, checkpoint_every=20)
     train_bc(half)
-    resumed = train_bc(_cfg(demos_path, tmp_path / "split", iterations=40, hidden_size=32, checkpoint_every=20), resume=True)
+    resumed = train_bc(_cfg(demos_path, tmp_path / "split", iterations=40, hidden_size=32, checkpoint_every=20),
+                       resume=True)
     pf, pr = load_checkpoint(full), load_checkpoint(resumed)
     assert pr["iteration"] == 40
     for k in pf["policy"]:
@@ -117,7 +118,8 @@ def _two_clusters():
     T, E = 12, 64
     cluster = torch.arange(E) % 2
     obs = torch.randn(T, E, 2, generator=g)
-    actions = (torch.where(cluster == 0, 0.6, -0.6).view(1, E, 1) + 0.05 * torch.randn(T, E, 1, generator=g)).expand(T, E, 2).contiguous()
+    noise = 0.05 * torch.randn(T, E, 1, generator=g)
+    actions = (torch.where(cluster == 0, 0.6, -0.6).view(1, E, 1) + noise).expand(T, E, 2).contiguous()
     return PaddedEpisodes(obs, actions, torch.ones(T, E, dtype=torch.bool)), shift_actions(actions), cluster
 
 
@@ -190,5 +192,7 @@ def test_the_whole_set_assignment_refreshes_every_10_steps_or_once_per_pass():
     cfg = AdversarialConfig()  # bc_init_batch 64
     assert mixture_assignment(cfg, episodes(600), torch.zeros(3, 600, 2), True).refresh == 10
     assert mixture_assignment(cfg, episodes(2000), torch.zeros(3, 2000, 2), True).refresh == 32  # ceil(2000 / 64)
-    assert mixture_assignment(cfg, episodes(600), torch.zeros(3, 600, 2), False) is None  # no mixture: nothing to assign
-    assert mixture_assignment(AdversarialConfig(mixture_balance="batch"), episodes(600), torch.zeros(3, 600, 2), True) is None
+    assert mixture_assignment(cfg, episodes(600), torch.zeros(3, 600, 2),
+                              False) is None  # no mixture: nothing to assign
+    assert mixture_assignment(AdversarialConfig(mixture_balance="batch"), episodes(600), torch.zeros(3, 600, 2),
+                              True) is None

@@ -162,5 +162,6 @@ def test_executed_actions_are_what_the_environment_carries_out():
     before = env.positions.clone()
     env.step(raw)
     torch.testing.assert_close(env.positions - before, vec)  # the env moved exactly by the executed actions
-    ang = executed_actions_fn("pomil/Circles-v0", {"action_type": "angle"})(torch.tensor([[0.5], [0.5 + 2 * math.pi], [-3 * math.pi / 2]]))
+    ang = executed_actions_fn("pomil/Circles-v0",
+                              {"action_type": "angle"})(torch.tensor([[0.5], [0.5 + 2 * math.pi], [-3 * math.pi / 2]]))
     torch.testing.assert_close(ang, torch.tensor([[0.5], [0.5], [math.pi / 2]]))

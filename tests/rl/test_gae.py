@@ -40,4 +40,5 @@ def test_gae_lambda_one_gives_discounted_returns_minus_values():
 
 def test_gae_rejects_mismatched_shapes():
     with pytest.raises(ValueError, match="share one"):
-        gae(torch.zeros(3, 2), torch.zeros(3, 2), torch.zeros(3, 1), torch.zeros(3, 2, dtype=torch.bool), torch.zeros(3, 2, dtype=torch.bool))
+        gae(torch.zeros(3, 2), torch.zeros(3, 2), torch.zeros(3, 1), torch.zeros(3, 2, dtype=torch.bool),
+            torch.zeros(3, 2, dtype=torch.bool))

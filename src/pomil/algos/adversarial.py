@@ -45,7 +45,7 @@ import torch.nn.functional as F
 
 from pomil.algos.bc import MixtureAssignment, bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
 from pomil.api import TrainedPolicy
-from pomil.config import RunConfig, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
@@ -57,10 +57,7 @@ from pomil.rl.gae import gae
 from pomil.rl.collect import collect
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
-from pomil.training import (
-    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
-    save_run_checkpoint, seed_everything, write_json,
-)
+from pomil.training import DivergenceGuard, RunLoop, lr_hint
 
 LEARNER_KINDS = {  # what each learner is made of
     "gail": {"encoder": "mlp", "codes": False, "critic_objective": "gan"},
@@ -91,37 +88,48 @@ LEARNER_KINDS = {  # what each learner is made of
 #   run ~2x faster per env step than with 64.
 @dataclass(frozen=True)
 class AdversarialConfig(RunConfig):
-    learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp", "which learner (set by the subcommand)")
+    learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp",
+                                                                    "which learner (set by the subcommand)")
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    preset: Literal["default", "paper-text"] = option("default", "named settings under the config file and flags: default "
-                                                      "(pomil's measured recipe) or paper-text (the paper's text, see PRESETS)")
+    preset: Literal["default", "paper-text"] = option("default",
+                                                      "named settings under the config file and flags: default "
+                                                      "(pomil's measured recipe) or paper-text (the paper's text, see "
+                                                      "PRESETS)")
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO)", within="[1, inf)")
     num_envs: int = option(256, "episodes collected per iteration", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
-    num_codes: int = option(-1, "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by gail)",
+    num_codes: int = option(-1,
+                            "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by "
+                            "gail)",
                             within="[-1, inf)")
     hidden_size: int = option(128, "dense width and GRU cells of every network", within="[1, inf)")
     lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
-    shared_value_encoder: bool = option(False, "value head on the policy's encoder instead of its own (measured: see docs/method.md)")
+    shared_value_encoder: bool = option(False,
+                                        "value head on the policy's encoder instead of its own (measured: see "
+                                        "docs/method.md)")
     lr_critic: float = option(5e-4, "critic learning rate", within="(0, inf)")
     lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("adam", "adam (the paper's code) or rmsprop (its text)")
     critic_steps: int = option(3, "critic updates per iteration", within="[1, inf)")
     critic_batch: int = option(64, "expert and policy episodes per critic update", within="[1, inf)")
-    expert_action_noise: bool = option(False, "add the policy's current action noise to the demonstrations' actions the critic "
-                                       "sees, so that it cannot tell deterministic experts from the policy by action jitter")
-    weight_clip: float = option(0.0, "clip Wasserstein critic weights to +-this after each update (0: off; the paper's text: "
-                                     "0.01; never for GAIL's GAN critic)", within="[0, inf)")
-    gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam", within="[0, inf)")
+    expert_action_noise: bool = option(False,
+                                       "add the policy's current action noise to the demonstrations' actions the "
+                                       "critic sees, so that it cannot tell deterministic experts from the policy by "
+                                       "action jitter")
+    weight_clip: float = option(0.0, "clip Wasserstein critic weights to +-this after each update (0: off; the "
+                                     "paper's text: 0.01; never for GAIL's GAN critic)", within="[0, inf)")
+    gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam",
+                                     within="[0, inf)")
     posterior_steps: int = option(1, "posterior updates per iteration", within="[1, inf)")
     mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)",
                               within="[0, inf)")
     ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
     vf_coef: float = option(0.5, "weight of the value loss in the PPO loss", within="[0, inf)")
-    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update", within="(0, inf)")
+    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update",
+                                  within="(0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
     termination: Literal["absorbing", "end"] = option(
         "absorbing", "a policy episode that terminates (e.g. Hopper falls): absorbing = it goes on in an absorbing state "
@@ -132,28 +140,37 @@ class AdversarialConfig(RunConfig):
     value_clip: float = option(0.0, "PPO value clip (0: off)", within="[0, inf)")
     ppo_epochs: int = option(2, "PPO epochs per iteration", within="[1, inf)")
     minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
-    update_mode: Literal["sequence", "window"] = option("sequence", "recurrent updates: whole sequences or random windows from a zero state")
+    update_mode: Literal["sequence", "window"] = option("sequence",
+                                                        "recurrent updates: whole sequences or random windows from a "
+                                                        "zero state")
     window_length: int = option(8, "steps per window in window mode", within="[1, inf)")
     bc_init_iterations: int = option(3000, "behaviour-cloning steps on the demonstrations before adversarial training "
                                            "(the warm start; 0: off)", within="[0, inf)")
     bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start", within="(0, inf)")
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
-    bc_init_codes: Literal["random", "mixture"] = option("mixture", "codes in the warm start: random per episode (InfoGAIL), or "
-                                                         "mixture: each code clones its own cluster of episodes (mixture likelihood)")
-    mixture_balance: Literal["dataset", "batch"] = option("dataset", "with bc_init_codes mixture: every code takes 1/K of "
-                                                          "all demonstration episodes (dataset, refreshed every 10 steps or pass) or "
-                                                          "of each random batch (batch: noisier, see MixtureAssignment)")
+    bc_init_codes: Literal["random", "mixture"] = option("mixture",
+                                                         "codes in the warm start: random per episode (InfoGAIL), or "
+                                                         "mixture: each code clones its own cluster of episodes "
+                                                         "(mixture likelihood)")
+    mixture_balance: Literal["dataset", "batch"] = option("dataset",
+                                                          "with bc_init_codes mixture: every code takes 1/K of "
+                                                          "all demonstration episodes (dataset, refreshed every 10 "
+                                                          "steps or pass) or of each random batch (batch: noisier, "
+                                                          "see MixtureAssignment)")
     posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
                                                  "each episode labelled with its most likely code", within="[0, inf)")
     log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
-    bc_weight: float = option(10.0, "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
+    bc_weight: float = option(10.0,
+                              "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
                                     "policy's PPO loss (keeps the policy near the demonstrations; 0: off)",
                                     within="[0, inf)")
     policy_warmup_iterations: int = option(5, "first iterations in which only the critic, posterior and value learn "
                                               "(the warm-started policy waits for a trained value and critic)",
                                               within="[0, inf)")
-    eval_every: int = option(5, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos (0: off)",
+    eval_every: int = option(5,
+                             "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos "
+                             "(0: off)",
                              within="[0, inf)")
     eval_episodes: int = option(10, "evaluation rollouts per code", within="[1, inf)")
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
@@ -175,7 +192,8 @@ class AdversarialConfig(RunConfig):
     def __post_init__(self) -> None:
         super().__post_init__()  # every field in its interval (see the option declarations)
         if self.num_codes in (0, 1):
-            raise ConfigError(f"config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got {self.num_codes}")
+            raise ConfigError("config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got "
+                              f"{self.num_codes}")
 
 
 @dataclass
@@ -273,7 +291,8 @@ def _window_behaviour(b: Rollout, policy: GaussianPolicy, value: BeliefHead) -> 
 
 
 # -------------------------------------------------------------- critic, posterior
-def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy, execute: Callable[[torch.Tensor], torch.Tensor],
+def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy,
+                         execute: Callable[[torch.Tensor], torch.Tensor],
                          gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """(actions, prev_actions) of the demonstrations with the policy's current action noise added.
 
@@ -305,7 +324,8 @@ def critic_loss(
         stats = {"critic/wasserstein": w.item()}
     else:
         loss = (masked_mean(F.binary_cross_entropy_with_logits(f_exp, torch.ones_like(f_exp), reduction="none"), e_mask)
-                + masked_mean(F.binary_cross_entropy_with_logits(f_pol, torch.zeros_like(f_pol), reduction="none"), policy.mask))
+                + masked_mean(F.binary_cross_entropy_with_logits(f_pol, torch.zeros_like(f_pol), reduction="none"),
+                              policy.mask))
         stats = {"critic/expert_prob": masked_mean(torch.sigmoid(f_exp), e_mask).item(),
                  "critic/policy_prob": masked_mean(torch.sigmoid(f_pol), policy.mask).item()}
     if gp_weight > 0:
@@ -313,12 +333,14 @@ def critic_loss(
         t = min(e_obs.shape[0], policy.num_steps)
         alpha = torch.rand(1, b, 1, device=e_obs.device)
         mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
-        obs_i, prev_i, act_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions), mix(e_act, policy.executed_actions)
+        obs_i, prev_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions)
+        act_i = mix(e_act, policy.executed_actions)
         with torch.backends.cudnn.flags(enabled=False):  # cuDNN's GRU has no double backward; the penalty needs one
             f_i = score(obs_i, prev_i, act_i, e_starts[:t, :b])
         inputs = (obs_i, prev_i, act_i)
         grads = torch.autograd.grad(f_i.sum(), inputs, create_graph=True, allow_unused=True)  # MLPs ignore prev
-        norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)], dim=-1).norm(dim=-1)
+        norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)],
+                         dim=-1).norm(dim=-1)
         gp = ((norm - 1) ** 2).mean()
         loss = loss + gp_weight * gp
         stats["critic/gradient_penalty"] = gp.item()
@@ -326,13 +348,16 @@ def critic_loss(
     return loss, stats
 
 
-def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+def posterior_loss(post: BeliefHead, batch: Rollout,
+                   code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked cross-entropy of each step's code; code_idx_steps (T, B)."""
-    return _code_cross_entropy(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts, batch.mask,
+    return _code_cross_entropy(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts,
+                               batch.mask,
                                code_idx_steps)
 
 
-def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, mask, code_idx_steps) -> tuple[torch.Tensor, dict[str, float]]:
+def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, mask,
+                        code_idx_steps) -> tuple[torch.Tensor, dict[str, float]]:
     logits, _ = post.unroll(obs, prev_actions, post.initial_state(obs.shape[1], obs.device), starts, extra=actions)
     ce = F.cross_entropy(logits.flatten(0, 1), code_idx_steps.flatten(), reduction="none").view_as(code_idx_steps)
     loss = masked_mean(ce, mask)
@@ -341,18 +366,22 @@ def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, ma
 
 
 @torch.no_grad()
-def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig, objective: str) -> tuple[torch.Tensor, dict[str, float]]:
+def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig,
+            objective: str) -> tuple[torch.Tensor, dict[str, float]]:
     dev = roll.starts.device
-    f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev), roll.starts, extra=roll.executed_actions)
+    f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev),
+                           roll.starts, extra=roll.executed_actions)
     adv = f if objective == "wasserstein" else F.softplus(f)
     stats = {"reward/critic_raw_mean": adv.mean().item(), "reward/critic_raw_std": adv.std().item()}
     if cfg.normalize_reward:
         adv = normalize(adv, roll.mask)
     r = adv
     if m.posterior is not None:
-        logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions, m.posterior.initial_state(roll.num_envs, dev),
+        logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions,
+                                       m.posterior.initial_state(roll.num_envs, dev),
                                        roll.starts, extra=roll.executed_actions)
-        logq = torch.log_softmax(logits, -1).gather(-1, code_idx.view(1, -1, 1).expand(logits.shape[0], -1, 1)).squeeze(-1)
+        code_steps = code_idx.view(1, -1, 1).expand(logits.shape[0], -1, 1)
+        logq = torch.log_softmax(logits, -1).gather(-1, code_steps).squeeze(-1)
         r = r + cfg.mi_weight * logq
         stats["reward/log_posterior"] = logq.mean().item()
     stats["reward/total"] = r.mean().item()
@@ -360,7 +389,8 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
 
 
 # ---------------------------------------------------------------------- train
-def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int, device) -> tuple[Modules, PolicyArch]:
+def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
+                  device: torch.device | str) -> tuple[Modules, PolicyArch]:
     preset = LEARNER_KINDS[cfg.learner]
     enc = preset["encoder"]
     arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean)
@@ -554,7 +584,6 @@ class PhaseClock:
 
     def __init__(self, *phases: str) -> None:
         self.spent = dict.fromkeys(phases, 0.0)
-        self.t_start = time.perf_counter()
 
     @contextmanager
     def __call__(self, phase: str) -> Iterator[None]:
@@ -564,19 +593,9 @@ class PhaseClock:
         finally:
             self.spent[phase] += time.perf_counter() - t0
 
-    def rates(self, env_steps: int) -> dict[str, float]:
-        elapsed = time.perf_counter() - self.t_start
-        return {"time/elapsed_s": elapsed, "time/env_steps_per_s": env_steps / max(elapsed, 1e-9)}
-
     def shares(self) -> dict[str, float]:
         total = max(sum(self.spent.values()), 1e-9)
         return {f"time/share_{k}": v / total for k, v in self.spent.items()}
-
-
-def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
-    """Train (or continue) an adversarial run; returns the checkpoint path."""
-    with RunLock(cfg.out) as lock:
-        return _train_adversarial(cfg, resume, lock)
 
 
 def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
@@ -600,91 +619,57 @@ def _environment(cfg: AdversarialConfig, device: torch.device):
     return demos, env_info, evaluate, env, executed_actions_fn(env_id, env_kwargs)
 
 
-def _train_adversarial(cfg: AdversarialConfig, resume: bool, lock: RunLock) -> Path:
+def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
+    """Train (or continue) an adversarial run; returns the checkpoint path."""
     if not cfg.demos:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
-    run_dir, device = Path(cfg.out), resolve_device(cfg.device)
-    ckpt_path = run_dir / "checkpoint.pt"
-    demos, env_info, evaluate, env, execute = _environment(cfg, device)
-    num_codes = resolve_num_codes(cfg, demos)
-    gen = seed_everything(cfg.seed)
-    m, arch = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, device)
-    opt = build_optimizers(cfg, m)
-    nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
-    if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
-        print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch has "
-              f"{cfg.num_envs} minibatches of one episode", file=sys.stderr)
-    lock.acquire(resume)
-    resumed = resume_run(ckpt_path, to_dict(cfg), nets, opt, gen, device, AdversarialConfig) if resume else RunStart()
-    if resumed.iteration == cfg.iterations:
-        print(f"pomil: note: {ckpt_path} is already at iteration {resumed.iteration}: nothing to do", file=sys.stderr)
-        return ckpt_path
-    write_json(run_dir / "config.json", {"algo": cfg.learner, **to_dict(cfg)})
-    expert = demos.padded(device)
-    expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
-    run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
-                         shift_actions(expert.actions), execute, num_codes,
-                         DivergenceGuard(ckpt_path, divergence_hints(cfg), resumed.iteration))
-    init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard)
-                  if resumed.iteration == 0 and cfg.bc_init_iterations > 0 else {})
-    run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
-    logger = RunLogger(run_dir, cfg.iterations, resumed.iteration, cfg.progress, desc=cfg.learner, key_stats=KEY_STATS)
-    run.guard.on_stop = logger.close
-    if resumed.iteration == 0:  # row 0: the warm start's figures, and where evaluation starts from (0 env steps)
-        if evaluate is not None:
-            init_stats.update(evaluate(m.policy), **{"eval/env_steps": 0.0})
-        if init_stats:
-            logger.log(0, init_stats)
-    _loop(run, env, evaluate, logger, resumed, device,
-          lambda it, steps: _checkpoint(run, ckpt_path, logger, env_info, arch, nets, it, steps))
-    return ckpt_path
+    with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
+        demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
+        num_codes = resolve_num_codes(cfg, demos)
+        gen = loop.seed()
+        m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, loop.device)
+        opt = build_optimizers(cfg, m)
+        if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
+            print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch "
+                  f"has {cfg.num_envs} minibatches of one episode", file=sys.stderr)
+        nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
+        if not loop.start(env=env_info, nets=nets, optimizers=opt):
+            return loop.ckpt_path
+        expert = demos.padded(loop.device)
+        expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
+        run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
+                             shift_actions(expert.actions), execute, num_codes, loop.guard)
+        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard)
+                      if loop.iteration == 0 and cfg.bc_init_iterations > 0 else {})
+        run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
+        clock = PhaseClock("rollout", "critic", "posterior", "ppo")
+        return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
+                        first_row=init_stats, evaluate=evaluate, eval_every=cfg.eval_every,
+                        log_extras=lambda: {"policy/log_std": m.policy.log_std.mean().item(), **clock.shares()})
 
 
 KEY_STATS = ("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein")
 
 
-def _loop(run: AdversarialRun, env: Any, evaluate: Callable[[GaussianPolicy], dict[str, float]] | None,
-          logger: RunLogger, resumed: RunStart, device: torch.device, checkpoint: Callable[[int, int], None]) -> None:
-    """The iterations: collect, critic, posterior, rewards, policy, then evaluation, logging and checkpoints."""
+def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, it: int) -> dict[str, float]:
+    """One iteration's phases: collect, critic, posterior, rewards and policy (the run loop evaluates,
+    logs and checkpoints)."""
     cfg, m = run.cfg, run.m
-    clock = PhaseClock("rollout", "critic", "posterior", "ppo")
-    steps_done = resumed.env_steps  # eval/env_steps counts the whole run, across resumes
-    for it in range(resumed.iteration + 1, cfg.iterations + 1):
-        with clock("rollout"):
-            roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
-                                                               run.gen, device, cfg.rollout_threads)
-            stats = {"env/true_return": env_rewards.sum(0).mean().item()}
-            run.check(it, "environment reward", stats["env/true_return"])
-            steps_done += roll.num_steps * roll.num_envs
-        with clock("critic"):
-            stats.update(update_critic(run, roll, it))
-        with clock("posterior"):
-            stats.update(update_posterior(run, roll, code_idx, it))
-        with clock("ppo"):
-            roll, s = with_rewards(run, roll, code_idx, next_values, it)
-            stats.update(s)
-            stats.update(update_policy(run, roll, it))
-            run.guard.params(it, {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior})
-        if evaluate is not None and (it % cfg.eval_every == 0 or it == cfg.iterations):
-            stats.update(evaluate(m.policy))
-            stats["eval/env_steps"] = float(steps_done)
-        if it % cfg.log_every == 0 or it in (1, cfg.iterations) or any(k.startswith("eval/") for k in stats):
-            stats.update(clock.rates(steps_done), **{"policy/log_std": m.policy.log_std.mean().item()})
-            stats.update(clock.shares())
-            logger.log(it, stats)
-        if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
-            checkpoint(it, steps_done)
-        logger.update()
-    logger.close()
-
-
-def _checkpoint(run: AdversarialRun, path: Path, logger: RunLogger, env_info: dict[str, Any], arch: PolicyArch,
-                nets: dict[str, torch.nn.Module | None], iteration: int, env_steps: int) -> None:
-    save_run_checkpoint(path, logger, run.guard, iteration, {
-        "algo": run.cfg.learner, "config": to_dict(run.cfg), "env": env_info, "policy_arch": arch.to_dict(),
-        "policy": run.m.policy.state_dict(), "nets": {k: net.state_dict() for k, net in nets.items() if net is not None},
-        "optimizers": {k: o.state_dict() for k, o in run.opt.items()}, "rng": rng_state(run.gen), "env_steps": env_steps,
-    })
+    with clock("rollout"):
+        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
+                                                           run.gen, loop.device, cfg.rollout_threads)
+        stats = {"env/true_return": env_rewards.sum(0).mean().item()}
+        run.check(it, "environment reward", stats["env/true_return"])
+        loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
+    with clock("critic"):
+        stats.update(update_critic(run, roll, it))
+    with clock("posterior"):
+        stats.update(update_posterior(run, roll, code_idx, it))
+    with clock("ppo"):
+        roll, s = with_rewards(run, roll, code_idx, next_values, it)
+        stats.update(s)
+        stats.update(update_policy(run, roll, it))
+    return stats
 
 
 def policy_and_demo_features(policy: GaussianPolicy, b: Rollout, demo: PaddedEpisodes,
@@ -710,7 +695,8 @@ def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_pr
 
 
 def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
-                  cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None) -> dict[str, float]:
+                  cfg: AdversarialConfig, gen: torch.Generator,
+                  guard: DivergenceGuard | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
 
     Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
@@ -737,8 +723,9 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
         starts = first_step_starts(expert.mask)
         for _ in range(cfg.posterior_init_iterations):
             idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
-            loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
-                                          starts[:, idx], expert.mask[:, idx], codes[idx].expand(expert.mask.shape[0], -1))
+            loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx],
+                                          expert.actions[:, idx], starts[:, idx], expert.mask[:, idx],
+                                          codes[idx].expand(expert.mask.shape[0], -1))
             if guard is not None:
                 guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
             post_opt.zero_grad(set_to_none=True)
@@ -748,7 +735,8 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
-def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any], demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
+def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
+                   demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
     """The periodic evaluation of a run: mode metrics on circles, per-task figures
     on multi-task demonstrations (``pomil demos hopper``); None otherwise (see ``pomil.envs.evaluation_kind``)."""
     kind = evaluation_kind(env_info["id"], demos.metadata) if cfg.eval_every else None
@@ -760,7 +748,8 @@ def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any], demos: Demo
         def measure(tp: TrainedPolicy) -> dict[str, float]:
             metrics, _ = evaluate_circles(tp, cfg.eval_episodes, seed=12345)
             return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
-                    "eval/modes_covered": float(metrics["modes_covered"]), "eval/none_share": metrics["overall_none_share"]}
+                    "eval/modes_covered": float(metrics["modes_covered"]),
+                    "eval/none_share": metrics["overall_none_share"]}
     else:
         from pomil.eval.tasks import evaluate_tasks, reference_of
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -19,16 +18,13 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.config import RunConfig, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
-from pomil.training import (
-    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
-    save_run_checkpoint, seed_everything, write_json,
-)
+from pomil.training import RunLoop, lr_hint
 
 
 @dataclass(frozen=True)
@@ -46,7 +42,8 @@ class BCConfig(RunConfig):
 
 
 def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor,
-            prev_actions: torch.Tensor | None = None, codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+            prev_actions: torch.Tensor | None = None,
+            codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked mean negative log-likelihood over a (T, B) block of whole episodes.
 
     ``prev_actions`` (a_{t-1} as the environment carried it out) defaults to
@@ -55,9 +52,11 @@ def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, ma
     return _nll(policy, policy.dist(feats, codes), actions, mask)
 
 
-def episode_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def episode_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor,
+                     mask: torch.Tensor) -> torch.Tensor:
     """The policy's encoder over a (T, B) block of whole episodes, from a zero state."""
-    return policy.features(obs, prev_actions, policy.initial_state(mask.shape[1], mask.device), first_step_starts(mask))[0]
+    return policy.features(obs, prev_actions, policy.initial_state(mask.shape[1], mask.device),
+                           first_step_starts(mask))[0]
 
 
 def first_step_starts(mask: torch.Tensor) -> torch.Tensor:
@@ -67,7 +66,8 @@ def first_step_starts(mask: torch.Tensor) -> torch.Tensor:
     return starts
 
 
-def _nll(policy: GaussianPolicy, dist, actions: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+def _nll(policy: GaussianPolicy, dist, actions: torch.Tensor,
+         mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     m = mask.to(actions.dtype)
     nll = -(dist.log_prob(actions).sum(-1) * m).sum() / m.sum()
     mse = (((dist.mean - actions) ** 2).sum(-1) * m).sum() / m.sum()
@@ -101,7 +101,8 @@ class MixtureAssignment:
     def update(self, policy: GaussianPolicy) -> torch.Tensor:
         """The current responsibilities (K, E), recomputed on every ``refresh``-th call."""
         if self.responsibilities is None or self._calls % self.refresh == 0:
-            self.responsibilities = balanced_responsibilities(episode_log_likelihoods(policy, self.data, self.prev_actions, self.chunk))
+            self.responsibilities = balanced_responsibilities(episode_log_likelihoods(policy, self.data,
+                                                                                      self.prev_actions, self.chunk))
         self._calls += 1
         return self.responsibilities
 
@@ -164,7 +165,8 @@ def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: Padd
     return stats
 
 
-def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes,
+                    prev_actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
     """Behaviour cloning of unlabelled episodes by a mixture of the policy's K codes (EM).
 
     Each episode's log-likelihood under each code, L_k = sum_t log pi(a_t | b_t, k), gives
@@ -207,57 +209,29 @@ def most_likely_codes(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions
 
 def train_bc(config: BCConfig, resume: bool = False) -> Path:
     """Train (or continue) a BC run; returns the checkpoint path."""
-    with RunLock(config.out) as lock:
-        return _train_bc(config, resume, lock)
-
-
-def _train_bc(config: BCConfig, resume: bool, lock: RunLock) -> Path:
     if not config.demos:
         raise PomilError("bc: --demos is required (a demonstrations .npz file)")
-    run_dir = Path(config.out)
-    ckpt_path = run_dir / "checkpoint.pt"
-    device = resolve_device(config.device)
-    demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs), parse_mask(config.observation_mask))
-    generator = seed_everything(config.seed)
-    arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
-    policy = GaussianPolicy(arch).to(device)
-    optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
-    if config.batch_episodes > demos.num_episodes:
-        print(f"pomil: note: batch_episodes {config.batch_episodes} is more than the {demos.num_episodes} demonstration "
-              f"episodes; each batch draws {demos.num_episodes}", file=sys.stderr)
-    lock.acquire(resume)
-    start = (resume_run(ckpt_path, to_dict(config), {"policy": policy}, {"policy": optimizer}, generator, device, BCConfig)
-             if resume else RunStart()).iteration
-    if start == config.iterations:
-        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
-        return ckpt_path
-    write_json(run_dir / "config.json", {"algo": "bc", **to_dict(config)})
+    hints = {"bc": lr_hint(config, "lr"), "policy": lr_hint(config, "lr")}
+    with RunLoop(config, algo="bc", resume=resume, hints=hints) as loop:
+        demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs),
+                                                        parse_mask(config.observation_mask))
+        generator = loop.seed()
+        arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
+        policy = GaussianPolicy(arch).to(loop.device)
+        optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
+        if config.batch_episodes > demos.num_episodes:
+            print(f"pomil: note: batch_episodes {config.batch_episodes} is more than the {demos.num_episodes} "
+                  f"demonstration episodes; each batch draws {demos.num_episodes}", file=sys.stderr)
+        env = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
+        if not loop.start(env=env, nets={"policy": policy}, optimizers={"policy": optimizer}, env_steps=False):
+            return loop.ckpt_path
+        data = demos.padded(loop.device)
+        prev_all = shift_actions(executed_actions_fn(env_id, env_kwargs)(data.actions))
 
-    data = demos.padded(device)
-    prev_all = shift_actions(executed_actions_fn(env_id, env_kwargs)(data.actions))
-    logger = RunLogger(run_dir, config.iterations, start, config.progress, desc="bc", key_stats=("bc/nll", "bc/action_mse"))
-    guard = DivergenceGuard(ckpt_path, {"bc": lr_hint(config, "lr"), "policy": lr_hint(config, "lr")}, start, logger.close)
+        def update(iteration: int) -> dict[str, float]:
+            stats = bc_step(policy, optimizer, data, prev_all, config.batch_episodes, generator)
+            loop.guard.value(iteration, "bc loss (negative log-likelihood)", stats["bc/nll"])
+            loop.guard.grads(iteration, "policy", policy.parameters())  # the step's gradients are still on them
+            return stats
 
-    def checkpoint(iteration: int) -> None:
-        save_run_checkpoint(ckpt_path, logger, guard, iteration, {
-            "algo": "bc", "config": to_dict(config),
-            "env": {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")},
-            "policy_arch": arch.to_dict(), "policy": policy.state_dict(),
-            "optimizers": {"policy": optimizer.state_dict()}, "rng": rng_state(generator),
-        })
-
-    t0 = time.perf_counter()
-    for iteration in range(start + 1, config.iterations + 1):
-        stats = bc_step(policy, optimizer, data, prev_all, config.batch_episodes, generator)
-        guard.value(iteration, "bc loss (negative log-likelihood)", stats["bc/nll"])
-        guard.grads(iteration, "policy", policy.parameters())  # the step's gradients are still on the parameters
-        guard.params(iteration, {"policy": policy})
-        if iteration % config.log_every == 0 or iteration in (1, config.iterations):
-            stats["time/elapsed_s"] = time.perf_counter() - t0
-            logger.log(iteration, stats)
-        if iteration % config.checkpoint_every == 0 and iteration != config.iterations:
-            checkpoint(iteration)
-        logger.update()
-    checkpoint(config.iterations)
-    logger.close()
-    return ckpt_path
+        return loop.run(update, desc="bc", key_stats=("bc/nll", "bc/action_mse"))

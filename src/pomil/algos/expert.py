@@ -14,15 +14,13 @@ locomotion.
 
 from __future__ import annotations
 
-import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Literal
 
 import torch
 
-from pomil.config import RunConfig, option, parse_kwargs, to_dict
+from pomil.config import RunConfig, option, parse_kwargs
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.envs.locomotion import HOPPER_ID, locomotion_kwargs
 from pomil.envs.wrappers import parse_mask, resolve_observation_mask
@@ -34,10 +32,7 @@ from pomil.rl.collect import collect
 from pomil.rl.gae import gae
 from pomil.rl.ppo import normalize, ppo_loss
 from pomil.rl.storage import Rollout
-from pomil.training import (
-    DivergenceGuard, RunLock, RunLogger, RunStart, lr_hint, resolve_device, resume_run, rng_state,
-    save_run_checkpoint, seed_everything, write_json,
-)
+from pomil.training import DivergenceGuard, RunLoop, lr_hint
 
 
 @dataclass(frozen=True)
@@ -49,9 +44,12 @@ class ExpertConfig(RunConfig):
         "paper", "paper: 128-step episodes that do not end when unhealthy; standard: the environment's own episodes")
     env_kwargs: tuple[str, ...] = option((), "more constructor keywords as key=value (JSON values), applied after task "
                                              "and setting, e.g. ctrl_cost_weight=0.05,max_episode_steps=200")
-    observation_mask: str = option("", "what the expert observes: '' (everything), positions-only, or comma-separated indices")
+    observation_mask: str = option("",
+                                   "what the expert observes: '' (everything), positions-only, or comma-separated "
+                                   "indices")
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    iterations: int = option(200, "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
+    iterations: int = option(200,
+                             "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
                              within="[1, inf)")
     num_envs: int = option(64, "environment copies stepped together", within="[1, inf)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
@@ -113,12 +111,6 @@ def discounted_returns(rewards: torch.Tensor, mask: torch.Tensor, gamma: float) 
     return out
 
 
-def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
-    """Train (or continue) a PPO expert; returns the checkpoint path."""
-    with RunLock(cfg.out) as lock:
-        return _train_expert(cfg, resume, lock)
-
-
 def _environment(cfg: ExpertConfig, device: torch.device):
     """(batched env, constructor keywords, observation indices or None) of a run."""
     try:
@@ -153,63 +145,41 @@ def ppo_update(cfg: ExpertConfig, policy: GaussianPolicy, value: torch.nn.Module
     return stats
 
 
-def _train_expert(cfg: ExpertConfig, resume: bool, lock: RunLock) -> Path:
-    run_dir = Path(cfg.out)
-    ckpt_path = run_dir / "checkpoint.pt"
-    device = resolve_device(cfg.device)
-    raw_env, env_kwargs, mask = _environment(cfg, device)
-    obs_norm = RunningNorm(raw_env.obs_dim).to(device)
-    env = _NormalizedObs(raw_env, obs_norm)
-    reward_norm = RunningNorm(1).to(device)
-    execute = executed_actions_fn(cfg.env_id, env_kwargs)
-    gen = seed_everything(cfg.seed)
-    arch = PolicyArch(raw_env.obs_dim, raw_env.act_dim, "mlp", cfg.hidden_size, 0, cfg.log_std_init)
-    policy = GaussianPolicy(arch).to(device)
-    value = heads.value(raw_env.obs_dim, raw_env.act_dim, 0, "mlp", cfg.hidden_size).to(device)
-    opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=cfg.lr, eps=1e-5)
-    nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
-    lock.acquire(resume)
-    resumed = resume_run(ckpt_path, to_dict(cfg), nets, {"ppo": opt}, gen, device, ExpertConfig) if resume else RunStart()
-    start = resumed.iteration
-    if start == cfg.iterations:
+def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
+    """Train (or continue) a PPO expert; returns the checkpoint path."""
+    hints = {"policy": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr")}
+    with RunLoop(cfg, algo="expert", resume=resume, hints=hints) as loop:
+        raw_env, env_kwargs, mask = _environment(cfg, loop.device)
+        obs_norm = RunningNorm(raw_env.obs_dim).to(loop.device)
+        env = _NormalizedObs(raw_env, obs_norm)
+        reward_norm = RunningNorm(1).to(loop.device)
+        execute = executed_actions_fn(cfg.env_id, env_kwargs)
+        gen = loop.seed()
+        arch = PolicyArch(raw_env.obs_dim, raw_env.act_dim, "mlp", cfg.hidden_size, 0, cfg.log_std_init)
+        policy = GaussianPolicy(arch).to(loop.device)
+        value = heads.value(raw_env.obs_dim, raw_env.act_dim, 0, "mlp", cfg.hidden_size).to(loop.device)
+        opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=cfg.lr, eps=1e-5)
+        nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
+        if not loop.start(env={"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}, nets=nets,
+                          optimizers={"ppo": opt}):
+            raw_env.close()
+            return loop.ckpt_path
+
+        def update(it: int) -> dict[str, float]:
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr * (1.0 - (it - 1) / cfg.iterations)
+            roll, next_values, _, raw_rewards = collect(env, policy, value, 0, execute, gen, loop.device,
+                                                        cfg.rollout_threads)
+            loop.env_steps += int(roll.mask.sum())
+            reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
+            loop.guard.value(it, "environment reward", raw_rewards)
+            r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)  # divided by the running std of the return
+            adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
+            stats = ppo_update(cfg, policy, value, opt, roll.with_(rewards=r, advantages=adv, returns=ret), gen,
+                               loop.guard, it)
+            return {**stats, "env/return": raw_rewards.sum(0).mean().item(), "env/steps": float(loop.env_steps)}
+
+        loop.run(update, desc=f"expert {cfg.env_id} {cfg.task}", key_stats=("env/return", "ppo/approx_kl"),
+                 log_extras=lambda: {"policy/log_std": policy.log_std.mean().item()})
         raw_env.close()
-        print(f"pomil: note: {ckpt_path} is already at iteration {start}: nothing to do", file=sys.stderr)
-        return ckpt_path
-    write_json(run_dir / "config.json", {"algo": "expert", **to_dict(cfg)})
-    logger = RunLogger(run_dir, cfg.iterations, start, cfg.progress, desc=f"expert {cfg.env_id} {cfg.task}",
-                       key_stats=("env/return", "ppo/approx_kl"))
-    guard = DivergenceGuard(ckpt_path, {"policy": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr")}, start, logger.close)
-    env_info = {"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}
-
-    def checkpoint(iteration: int) -> None:
-        save_run_checkpoint(ckpt_path, logger, guard, iteration, {
-            "algo": "expert", "config": to_dict(cfg), "env": env_info, "policy_arch": arch.to_dict(),
-            "policy": policy.state_dict(), "obs_norm": obs_norm.state_dict(), "nets": {k: n.state_dict() for k, n in nets.items()},
-            "optimizers": {"ppo": opt.state_dict()}, "rng": rng_state(gen), "env_steps": steps_done})
-
-    steps_done = resumed.env_steps
-    t_start = time.perf_counter()
-    for it in range(start + 1, cfg.iterations + 1):
-        for group in opt.param_groups:
-            group["lr"] = cfg.lr * (1.0 - (it - 1) / cfg.iterations)
-        roll, next_values, _, raw_rewards = collect(env, policy, value, 0, execute, gen, device, cfg.rollout_threads)
-        steps_done += int(roll.mask.sum())
-        reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
-        guard.value(it, "environment reward", raw_rewards)
-        r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)  # divided by the running std of the return
-        adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
-        stats = ppo_update(cfg, policy, value, opt, roll.with_(rewards=r, advantages=adv, returns=ret), gen, guard, it)
-        guard.params(it, nets)
-        if it % cfg.log_every == 0 or it in (1, cfg.iterations):
-            elapsed = time.perf_counter() - t_start
-            stats.update({"env/return": raw_rewards.sum(0).mean().item(), "env/steps": float(steps_done),
-                          "time/elapsed_s": elapsed, "time/env_steps_per_s": steps_done / max(elapsed, 1e-9),
-                          "policy/log_std": policy.log_std.mean().item()})
-            logger.log(it, stats)
-        if it % cfg.checkpoint_every == 0 and it != cfg.iterations:
-            checkpoint(it)
-        logger.update()
-    checkpoint(cfg.iterations)
-    logger.close()
-    raw_env.close()
-    return ckpt_path
+        return loop.ckpt_path

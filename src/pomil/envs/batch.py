@@ -62,7 +62,8 @@ class GymSim:
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
         for i in np.flatnonzero(~self.done):
-            self.obs[i], reward[i], terminated[i], truncated[i], _ = self.envs[i].step(actions[i].astype(self._act_dtype))
+            step = self.envs[i].step(actions[i].astype(self._act_dtype))
+            self.obs[i], reward[i], terminated[i], truncated[i], _ = step
         self.done |= terminated | truncated
         return self.obs.copy(), reward, terminated, truncated
 

@@ -280,7 +280,8 @@ class CircleExperts:
         self.noise_std = noise_std
         self.gain = gain
 
-    def heading(self, positions: torch.Tensor, modes: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    def heading(self, positions: torch.Tensor, modes: torch.Tensor,
+                generator: torch.Generator | None = None) -> torch.Tensor:
         centres, radii, dirs = self.spec.tensors(positions.device)
         c, r, d = centres[modes], radii[modes], dirs[modes]
         offset = positions - c
@@ -293,7 +294,8 @@ class CircleExperts:
             heading = heading + self.noise_std * noise
         return heading
 
-    def act(self, positions: torch.Tensor, modes: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    def act(self, positions: torch.Tensor, modes: torch.Tensor,
+            generator: torch.Generator | None = None) -> torch.Tensor:
         """Actions (N, act_dim) in the environment's action format."""
         heading = self.heading(positions, modes, generator)
         if self.spec.action_type == "angle":

@@ -137,7 +137,8 @@ class HopperSim:
         self.data = [mujoco.MjData(self.model) for _ in range(num_envs)]
         self.dt = self.model.opt.timestep * FRAME_SKIP
         self.act_dim = self.model.nu
-        self.obs_dim = self.model.nq + self.model.nv - (1 if self.kw["exclude_current_positions_from_observation"] else 0)
+        excluded = 1 if self.kw["exclude_current_positions_from_observation"] else 0
+        self.obs_dim = self.model.nq + self.model.nv - excluded
         self.init_qpos = self.data[0].qpos.copy()
         self.init_qvel = self.data[0].qvel.copy()
         self.ctrl_range = self.model.actuator_ctrlrange.copy()
@@ -218,7 +219,8 @@ class HopperSim:
         reward = (self.kw["forward_reward_weight"] * x_velocity + healthy * self.kw["healthy_reward"]
                   - self.kw["ctrl_cost_weight"] * np.square(actions).sum(axis=1))
         terminated = ~healthy if self.kw["terminate_when_unhealthy"] else np.zeros(self.num_envs, dtype=bool)
-        truncated = np.full(self.num_envs, self.t >= int(self.kw["max_episode_steps"]))  # as TimeLimit: may coincide with terminated
+        truncated = np.full(self.num_envs,
+                            self.t >= int(self.kw["max_episode_steps"]))  # as TimeLimit: may coincide with terminated
         was_done = np.ones(self.num_envs, dtype=bool)
         was_done[live] = False
         reward[was_done] = 0.0

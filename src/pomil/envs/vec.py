@@ -24,7 +24,8 @@ class TorchVecEnv:
     partial view).  ``full_observation`` is the last unmasked observation.
     """
 
-    def __init__(self, sim: Any, observation_mask: list[int] | None = None, device: Any = "cpu", seed: int | None = None) -> None:
+    def __init__(self, sim: Any, observation_mask: list[int] | None = None, device: Any = "cpu",
+                 seed: int | None = None) -> None:
         self.sim = sim
         self.num_envs = sim.num_envs
         self.device = torch.device(device)

@@ -53,7 +53,8 @@ def parse_mask(text: str) -> str | list[int] | None:
     try:
         return [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise ValueError(f"observation mask: expected one of {list(PRESETS)} or comma-separated integers, got {text!r}") from None
+        raise ValueError(f"observation mask: expected one of {list(PRESETS)} or comma-separated integers, "
+                         f"got {text!r}") from None
 
 
 def check_indices(indices: Sequence[int], obs_dim: int) -> np.ndarray:
@@ -67,7 +68,8 @@ def check_indices(indices: Sequence[int], obs_dim: int) -> np.ndarray:
     return idx.astype(np.int64)
 
 
-def resolve_observation_mask(env_id: str, env_kwargs: dict[str, Any], mask: str | Sequence[int] | None) -> list[int] | None:
+def resolve_observation_mask(env_id: str, env_kwargs: dict[str, Any],
+                             mask: str | Sequence[int] | None) -> list[int] | None:
     """Indices into ``env_id``'s observation for a preset name or an index list (None: no mask)."""
     if mask is None:
         return None
@@ -76,7 +78,8 @@ def resolve_observation_mask(env_id: str, env_kwargs: dict[str, Any], mask: str 
         obs_dim = int(env.observation_space.shape[0])
         if isinstance(mask, str):
             if mask != "positions-only":
-                raise ValueError(f"unknown observation mask preset {mask!r}; expected a list of indices or one of {list(PRESETS)}")
+                raise ValueError(f"unknown observation mask preset {mask!r}; expected a list of indices or one of "
+                                 f"{list(PRESETS)}")
             structure = getattr(env.unwrapped, "observation_structure", None)
             if not isinstance(structure, dict) or "qpos" not in structure:
                 raise ValueError(f"observation mask 'positions-only' needs a MuJoCo locomotion environment "

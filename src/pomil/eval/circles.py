@@ -20,11 +20,13 @@ def circles_spec_of(policy: TrainedPolicy) -> CirclesSpec:
 
 
 @torch.no_grad()
-def rollout_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0, deterministic: bool = False) -> dict[str, np.ndarray]:
+def rollout_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0,
+                    deterministic: bool = False) -> dict[str, np.ndarray]:
     """positions (E, T, 2) visited after each step, codes (E,), returns (E,)."""
     spec = circles_spec_of(policy)
     if (policy.obs_dim, policy.act_dim) != (spec.obs_dim, spec.act_dim):
-        raise PomilError(f"policy sizes {(policy.obs_dim, policy.act_dim)} do not match the environment {(spec.obs_dim, spec.act_dim)}")
+        raise PomilError(f"policy sizes {(policy.obs_dim, policy.act_dim)} do not match the environment "
+                         f"{(spec.obs_dim, spec.act_dim)}")
     k = max(policy.num_codes, 1)
     n = episodes_per_code * k
     codes = np.repeat(np.arange(k), episodes_per_code)

@@ -19,7 +19,8 @@ def _panel(ax, positions: np.ndarray, groups: np.ndarray, title: str, group_name
         colour = COLOURS[int(g) % len(COLOURS)]
         for j, e in enumerate(sel):
             path = np.concatenate([np.zeros((1, 2)), positions[e]], axis=0)
-            ax.plot(path[:, 0], path[:, 1], color=colour, lw=0.8, alpha=0.6, label=f"{group_name} {g}" if j == 0 else None)
+            ax.plot(path[:, 0], path[:, 1], color=colour, lw=0.8, alpha=0.6,
+                    label=f"{group_name} {g}" if j == 0 else None)
     ax.plot(0, 0, "k.", ms=6)
     ax.set_title(title, fontsize=10)
     ax.set_aspect("equal")

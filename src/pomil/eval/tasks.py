@@ -60,7 +60,8 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
         env.close()
 
 
-def task_scores(returns: np.ndarray, displacement: np.ndarray, reference: dict[str, Any], task: str) -> dict[str, float]:
+def task_scores(returns: np.ndarray, displacement: np.ndarray, reference: dict[str, Any],
+                task: str) -> dict[str, float]:
     """The three figures for mean return and mean displacement on ``task``."""
     r_exp = float(reference["expert_returns"][task])
     r_still = float(reference["still_returns"][task])
@@ -107,7 +108,8 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
     per_pair: dict[str, dict[str, dict[str, float]]] = {}
     progress = np.zeros((k, len(tasks)))
     for j, task in enumerate(tasks):
-        roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed, deterministic, codes, mask)
+        roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed, deterministic, codes,
+                                  mask)
         for c in range(k):
             sel = codes == c
             s = task_scores(roll["returns"][sel].mean(), roll["displacement"][sel].mean(), reference, task)
@@ -116,6 +118,7 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
             progress[c, j] = s["progress"]
     assigned = match_codes(progress)
     per_task = {task: {"code": c, **per_pair[f"code{c}"][task]} for task, c in zip(tasks, assigned)}
-    summary = {f"min_{m}": min(per_task[t][m] for t in tasks) for m in ("normalised_return", "progress", "displacement_ratio")}
+    summary = {f"min_{m}": min(per_task[t][m] for t in tasks) for m in ("normalised_return", "progress",
+                                                                        "displacement_ratio")}
     return {"tasks": per_task, "codes": per_pair, "num_codes": policy.num_codes, "episodes_per_code": episodes_per_code,
             "deterministic": deterministic, "seed": seed, **summary}

@@ -16,7 +16,8 @@ from pomil.nn.encoders import make_encoder
 
 
 class BeliefHead(nn.Module):
-    def __init__(self, obs_dim: int, act_dim: int, extra_dim: int, out_dim: int, encoder: str = "gru", hidden_size: int = 128) -> None:
+    def __init__(self, obs_dim: int, act_dim: int, extra_dim: int, out_dim: int, encoder: str = "gru",
+                 hidden_size: int = 128) -> None:
         super().__init__()
         self.encoder = make_encoder(encoder, obs_dim, act_dim, hidden_size)
         self.out_dim = out_dim

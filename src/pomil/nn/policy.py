@@ -41,7 +41,8 @@ class GaussianPolicy(nn.Module):
         self.encoder = make_encoder(arch.encoder, arch.obs_dim, arch.act_dim, arch.hidden_size)
         feat = self.encoder.out_size
         self.code_embed = nn.Linear(arch.num_codes, feat, bias=False) if arch.num_codes > 0 else None
-        self.mean = nn.Sequential(nn.Linear(feat, arch.hidden_size), nn.ELU(), nn.Linear(arch.hidden_size, arch.act_dim))
+        self.mean = nn.Sequential(nn.Linear(feat, arch.hidden_size), nn.ELU(),
+                                  nn.Linear(arch.hidden_size, arch.act_dim))
         self.log_std = nn.Parameter(torch.full((arch.act_dim,), float(arch.log_std_init)))
 
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:

@@ -41,7 +41,8 @@ class Collected(NamedTuple):
 
 
 @torch.no_grad()
-def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int, execute: Callable[[torch.Tensor], torch.Tensor],
+def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int,
+            execute: Callable[[torch.Tensor], torch.Tensor],
             generator: torch.Generator, device: torch.device, threads: int = 1) -> Collected:
     """One episode in each of the env's N copies, a latent code per episode
     (none when ``num_codes`` is 0).  ``execute`` maps raw actions to executed
@@ -65,7 +66,8 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int, exec
     prev = torch.zeros(n, policy.arch.act_dim, device=device)
     start = torch.ones(n, dtype=torch.bool, device=device)
     alive = torch.ones(n, dtype=torch.bool, device=device)
-    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "exec", "prev", "start", "logp", "term", "trunc", "mask", "env_reward")}
+    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "exec", "prev", "start", "logp", "term",
+                                                          "trunc", "mask", "env_reward")}
     with torch_threads(threads):
         while True:
             dist, h_pi = policy.step(obs, prev, h_pi, start, codes)
@@ -90,7 +92,8 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int, exec
     T = st["obs"].shape[0]
     # V(s_0) ... V(s_T): the steps' observations, then the final one (its a_{t-1} the last executed action).
     values, _ = value.unroll(torch.cat([st["obs"], obs.unsqueeze(0)]), torch.cat([st["prev"], prev.unsqueeze(0)]), h0_v,
-                             torch.cat([st["start"], start.unsqueeze(0)]), extra=codes.unsqueeze(0).expand(T + 1, -1, -1))
+                             torch.cat([st["start"], start.unsqueeze(0)]),
+                             extra=codes.unsqueeze(0).expand(T + 1, -1, -1))
     roll = Rollout(
         observations=st["obs"], actions=st["act"], env_actions=st["exec"], prev_actions=st["prev"], starts=st["start"],
         codes=codes.unsqueeze(0).expand(T, -1, -1), log_probs=st["logp"], values=values[:-1],

@@ -19,7 +19,8 @@ from typing import Iterator
 import torch
 
 
-def window_index(num_steps: int, num_seqs: int, length: int, count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def window_index(num_steps: int, num_seqs: int, length: int, count: int,
+                 generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices of ``count`` random windows: time (length, count) and sequence (count,)."""
     length = min(length, num_steps)
     seq = torch.randint(num_seqs, (count,), generator=generator)
@@ -95,9 +96,11 @@ class Rollout:
         """``count`` random windows of ``length`` steps, hidden state zeroed at their start."""
         t_idx, env = window_index(self.num_steps, self.num_envs, length, count, generator)
         dev = self.starts.device
-        return self._gather(t_idx.to(dev), env.to(dev), self.h0_policy[env.to(dev)] * 0, self.h0_value[env.to(dev)] * 0, zero_first=True)
+        return self._gather(t_idx.to(dev), env.to(dev), self.h0_policy[env.to(dev)] * 0, self.h0_value[env.to(dev)] * 0,
+                            zero_first=True)
 
-    def _gather(self, t_idx: torch.Tensor, env: torch.Tensor, h0p: torch.Tensor, h0v: torch.Tensor, zero_first: bool) -> "Rollout":
+    def _gather(self, t_idx: torch.Tensor, env: torch.Tensor, h0p: torch.Tensor, h0v: torch.Tensor,
+                zero_first: bool) -> "Rollout":
         e_idx = env.unsqueeze(0).expand_as(t_idx)
         out = {}
         for f in fields(self):
