@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from pomil.algos.adversarial import (
-    AdversarialConfig, AdversarialRun, BatchSampler, absorbing_bootstrap, build_modules, build_optimizers, update_critic, update_policy,
-    update_posterior, with_rewards,
+    AdversarialConfig, AdversarialRun, BatchSampler, absorbing_bootstrap, build_modules, build_optimizers,
+    update_critic, update_policy, update_posterior, with_rewards,
 )
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.nn.policy import shift_actions
@@ -113,7 +113,8 @@ def test_the_absorbing_state_takes_the_lowest_reward_so_falling_never_pays():
     assert v_abs == pytest.approx(-6.0)  # -3 / (1 - 0.5)
     assert nv[1, 0].item() == pytest.approx(-6.0) and nv.sum().item() == pytest.approx(-6.0)  # only where it fell
     _, ret = gae(r, torch.zeros(4, 2), nv, torch.zeros_like(term), term | trunc, gamma=0.5, lam=1.0)
-    assert ret[0].tolist() == pytest.approx([-1 - 0.5 - 0.25 * 6.0, -1 - 0.5 - 0.25 - 0.125 * 3])  # falls -3.0 < stays -2.125
+    falls, stays = -1 - 0.5 - 0.25 * 6.0, -1 - 0.5 - 0.25 - 0.125 * 3  # -3.0 < -2.125
+    assert ret[0].tolist() == pytest.approx([falls, stays])
     assert absorbing_bootstrap(r, mask, torch.zeros_like(term), torch.zeros(4, 2), gamma=0.5)[1] == 0.0
 
 

@@ -132,8 +132,9 @@ class AdversarialConfig(RunConfig):
                                   within="(0, inf)")
     normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
     termination: Literal["absorbing", "end"] = option(
-        "absorbing", "a policy episode that terminates (e.g. Hopper falls): absorbing = it goes on in an absorbing state "
-                     "paid the batch's lowest step reward, so ending early never pays (DAC); end = its return ends there")
+        "absorbing", "a policy episode that terminates (e.g. Hopper falls): absorbing = it goes on in an absorbing "
+                     "state paid the batch's lowest step reward, so ending early never pays (DAC); end = its return "
+                     "ends there")
     gamma: float = option(0.99, "discount", within="(0, 1]")
     gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
     clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
@@ -508,11 +509,12 @@ def with_rewards(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor, nex
     """The rollout with the imitation rewards (:func:`rewards`), GAE advantages and returns."""
     r, s = rewards(run.m, roll, code_idx, run.cfg, run.objective)
     run.check(it, "reward", r)
-    terminated = roll.terminated
-    if run.cfg.termination == "absorbing" and bool(terminated.any()):
-        next_values, s["reward/absorbing_value"] = absorbing_bootstrap(r, roll.mask, terminated, next_values, run.cfg.gamma)
+    cfg, terminated = run.cfg, roll.terminated
+    if cfg.termination == "absorbing" and bool(terminated.any()):
+        next_values, s["reward/absorbing_value"] = absorbing_bootstrap(r, roll.mask, terminated, next_values, cfg.gamma)
         terminated = torch.zeros_like(terminated)  # bootstrapped from the absorbing state's value, like a truncation
-    adv, ret = gae(r, roll.values, next_values, terminated, roll.terminated | roll.truncated, run.cfg.gamma, run.cfg.gae_lambda)
+    ended = roll.terminated | roll.truncated
+    adv, ret = gae(r, roll.values, next_values, terminated, ended, cfg.gamma, cfg.gae_lambda)
     return roll.with_(rewards=r, advantages=adv, returns=ret), s
 
 
