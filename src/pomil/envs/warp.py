@@ -128,7 +128,9 @@ class WarpSim:
     reward, terminated, truncated)``: float32 / bool tensors on ``device`` (a
     torch or Warp device name: ``cpu``, ``cuda``, ``cuda:N``).  ``qpos``,
     ``qvel`` (N, nq / nv) are views of the Warp state, ``x_position`` (N,) the
-    torso's x, ``done`` (N,) which copies' episodes are over.
+    torso's x, ``done`` (N,) which copies' episodes are over.  ``nconmax`` /
+    ``njmax``: MuJoCo Warp's contacts / constraint rows per world (None: its
+    defaults; :meth:`check_overflow` says when they were too few).
     """
 
     def __init__(self, env_id: str, num_envs: int, env_kwargs: dict[str, Any] | None = None, device: Any = "cpu",
@@ -164,6 +166,7 @@ class WarpSim:
         self.done = torch.ones(num_envs, dtype=torch.bool, device=self.device)
         self.t = 0
         self._graph = None
+        self._torch_streams: dict[int, Any] = {}  # torch's CUDA streams as Warp streams, by handle
 
     # -- Warp work: on the CPU in order with torch; on CUDA on Warp's own stream, ordered after
     # torch's current stream and before torch's next work by events (no host synchronisation).
@@ -173,7 +176,10 @@ class WarpSim:
             if self.device.type != "cuda":
                 fn()
                 return
-            torch_stream = wp.stream_from_torch(self.device)
+            handle = torch.cuda.current_stream(self.device).cuda_stream
+            if handle not in self._torch_streams:
+                self._torch_streams[handle] = wp.stream_from_torch(self.device)
+            torch_stream = self._torch_streams[handle]
             self.wp_device.stream.wait_stream(torch_stream)
             fn()
             torch_stream.wait_stream(self.wp_device.stream)
