@@ -5,7 +5,8 @@ Prints, for a MuJoCo locomotion task (Hopper-v5 by default, the paper setting):
 1. agreement of :class:`pomil.envs.warp.WarpSim` on ``--device`` with MuJoCo on the
    CPU (gymnasium): max |difference| of observations and rewards after one env step
    from the same states, and along whole episodes from the same seeds, with the
-   number of episode ends (terminations / truncations) compared;
+   number of episode ends (terminations / truncations) compared, and as a yardstick
+   MuJoCo against itself from the same start rounded to float32 (chaos alone);
 2. physics-only env-steps/s of ``WarpSim`` for each ``--num-envs`` (random actions
    drawn on the device; ``--steps`` env steps timed after ``--warmup`` untimed ones,
    which include Warp's kernel compilation and, on CUDA, the graph capture), and of
@@ -34,7 +35,7 @@ import numpy as np
 import torch
 
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, locomotion_kwargs, usable_cpus
-from pomil.envs.warp import WarpSim
+from pomil.envs.warp import SPECS, WarpSim
 
 
 def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_states: int, seed: int = 0) -> dict[str, float]:
@@ -42,10 +43,14 @@ def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_st
     states, and along one episode per env from the same seeds (random actions in the
     control range's scale); the episode ends compared must all agree."""
     rng = np.random.default_rng(seed)
-    envs = [gym.make(env_id, **kwargs) for _ in range(num_envs)]
+    # One step from gymnasium's states: episodes that never end (an ended WarpSim copy stays frozen).
+    endless = {**kwargs, "max_episode_steps": 10**9}
+    if "terminate_when_unhealthy" in SPECS[env_id].defaults:
+        endless["terminate_when_unhealthy"] = False
+    envs = [gym.make(env_id, **endless) for _ in range(num_envs)]
     for i, e in enumerate(envs):
         e.reset(seed=seed + i)
-    sim = WarpSim(env_id, num_envs, kwargs, device)
+    sim = WarpSim(env_id, num_envs, endless, device)
     sim.reset(seed)
     one_obs = one_rew = 0.0
     for _ in range(one_step_states):
@@ -56,10 +61,9 @@ def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_st
         ref = [e.step(a) for e, a in zip(envs, act)]
         one_obs = max(one_obs, float(np.abs(obs.cpu().numpy() - np.stack([r[0] for r in ref])).max()))
         one_rew = max(one_rew, float(np.abs(rew.cpu().numpy() - np.array([r[1] for r in ref])).max()))
-        for e, r in zip(envs, ref):
-            if r[2] or r[3]:
-                e.reset()
     # Whole episodes from the same seeds.
+    envs = [gym.make(env_id, **kwargs) for _ in range(num_envs)]
+    sim = WarpSim(env_id, num_envs, kwargs, device)
     for i, e in enumerate(envs):
         e.reset(seed=seed + 100 + i)
     sim.reset(seed + 100)
@@ -80,8 +84,32 @@ def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_st
             if te or tr:
                 done[i] = True
                 ends += 1
-    return {"one_step_obs": one_obs, "one_step_reward": one_rew, "states": one_step_states * num_envs,
+    return {"float64_chaos": float64_chaos(env_id, kwargs, num_envs, seed + 100),
+            "one_step_obs": one_obs, "one_step_reward": one_rew, "states": one_step_states * num_envs,
             "episode_obs": traj_obs, "episode_reward": traj_rew, "episode_steps": steps, "ends": ends, "mismatched": mismatched}
+
+
+def float64_chaos(env_id: str, kwargs: dict, num_envs: int, seed: int) -> float:
+    """The yardstick for whole episodes: max |obs difference| between MuJoCo (float64) and
+    itself started from the same state rounded to float32, over episodes from the seeds of
+    :func:`agreement`'s with random actions of the same scale (how far chaos alone carries a
+    float32-sized difference)."""
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    for i in range(num_envs):
+        a, b = gym.make(env_id, **kwargs), gym.make(env_id, **kwargs)
+        a.reset(seed=seed + i)
+        b.reset(seed=seed + i)
+        d = b.unwrapped.data
+        b.unwrapped.set_state(d.qpos.astype(np.float32).astype(np.float64), d.qvel.astype(np.float32).astype(np.float64))
+        done = False
+        while not done:
+            act = rng.uniform(-1, 1, a.action_space.shape)
+            oa, _, te, tr, _ = a.step(act)
+            ob, _, te_b, tr_b, _ = b.step(act)
+            worst = max(worst, float(np.abs(oa - ob).max()))
+            done = te or tr or te_b or tr_b
+    return worst
 
 
 def warp_speed(env_id: str, kwargs: dict, device: str, num_envs: int, steps: int, warmup: int) -> tuple[float, float]:
@@ -143,7 +171,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="Warp/torch device: cpu, cuda, cuda:N")
     ap.add_argument("--env-id", default=HOPPER_ID, help="Hopper-v5, Walker2d-v5 or HalfCheetah-v5")
     ap.add_argument("--setting", default="paper", choices=["paper", "standard"])
-    ap.add_argument("--num-envs", default="64,256", help="comma-separated env counts for the physics rows")
+    ap.add_argument("--num-envs", default="64,256", help="comma-separated env counts for the physics rows ('': none)")
     ap.add_argument("--steps", type=int, default=32, help="env steps timed per env count")
     ap.add_argument("--warmup", type=int, default=2, help="untimed env steps first (kernel compilation, graph capture)")
     ap.add_argument("--no-cpu", action="store_true", help="skip the CPU simulator rows")
@@ -168,9 +196,10 @@ def main() -> None:
               f"{a['states']} states: max |obs diff| {a['one_step_obs']:.2e}, max |reward diff| {a['one_step_reward']:.2e}; "
               f"{args.agreement_envs} episodes from the same seeds ({a['episode_steps']} steps): max |obs diff| "
               f"{a['episode_obs']:.2e}, max |reward diff| {a['episode_reward']:.2e}, {a['ends']} episode ends compared, "
-              f"{a['mismatched']} mismatched")
+              f"{a['mismatched']} mismatched (yardstick: MuJoCo against itself from the float32-rounded start, "
+              f"{a['float64_chaos']:.2e})")
     rows = []
-    for n in [int(v) for v in args.num_envs.split(",")]:
+    for n in [int(v) for v in args.num_envs.split(",") if v.strip()]:
         rate, warm = warp_speed(args.env_id, kwargs, args.device, n, args.steps, args.warmup)
         rows.append((f"physics, WarpSim on {args.device} ({n} envs; warm-up {warm:.1f} s)", rate))
         if not args.no_cpu and args.env_id == HOPPER_ID:
