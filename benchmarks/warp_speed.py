@@ -16,7 +16,7 @@ Prints, for a MuJoCo locomotion task (Hopper-v5 by default, the paper setting):
    off, everything else timed) with ``sim=warp`` and ``sim=cpu``.
 
     python benchmarks/warp_speed.py --device cpu --num-envs 64,256             # Warp's CPU device: slow, a check
-    python benchmarks/warp_speed.py --device cuda --num-envs 1024,4096,16384,65536 --train-envs 4096,16384,65536
+    python benchmarks/warp_speed.py --device cuda --num-envs 1024,4096,16384,65536 --train-envs 4096,16384,65536 --train-sims warp
 
 Needs the gpu extra (``pip install 'pomil[gpu]'``).
 """
@@ -177,6 +177,7 @@ def main() -> None:
     ap.add_argument("--no-cpu", action="store_true", help="skip the CPU simulator rows")
     ap.add_argument("--agreement-envs", type=int, default=8, help="envs of the agreement check (0: skip it)")
     ap.add_argument("--train-envs", default="", help="comma-separated env counts for InfoGAIL-POMDP training rows")
+    ap.add_argument("--train-sims", default="warp,cpu", help="comma-separated sims of the training rows")
     ap.add_argument("--iterations", type=int, default=3, help="training iterations timed per training row")
     ap.add_argument("--demos", default="data/hopper-paper.npz")
     args = ap.parse_args()
@@ -205,7 +206,7 @@ def main() -> None:
         if not args.no_cpu and args.env_id == HOPPER_ID:
             rows.append((f"physics, HopperSim on {usable_cpus()} CPU cores ({n} envs)", cpu_speed(kwargs, n, args.steps)))
     for n in [int(v) for v in args.train_envs.split(",")] if args.train_envs else []:
-        for sim in ("warp", "cpu"):
+        for sim in args.train_sims.split(","):
             rows.append((f"InfoGAIL-POMDP training, sim {sim}, device {args.device} ({n} envs, all updates)",
                          training_speed(args.demos, args.device, n, args.iterations, sim)))
     print(f"{'what':78s} {'env-steps/s':>12s}")
