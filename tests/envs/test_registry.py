@@ -52,3 +52,18 @@ def test_no_environment_id_appears_outside_envs():
     found = [f"{p.relative_to(SRC)}:{n}" for p in SRC.rglob("*.py") if p.parent.name != "envs"
              for n, line in enumerate(p.read_text().splitlines(), 1) if ids.search(line)]
     assert found == []
+
+
+def test_sim_warp_without_the_gpu_extra_is_a_one_line_error(monkeypatch):
+    import sys
+
+    from pomil.errors import PomilError
+
+    monkeypatch.setitem(sys.modules, "mujoco_warp", None)  # as if the gpu extra were not installed
+    with pytest.raises(PomilError, match=r"^--sim warp needs MuJoCo Warp.*pip install 'pomil\[gpu\]'") as err:
+        make_vec_env(HOPPER_ID, {}, 2, sim="warp")
+    assert "\n" not in str(err.value)
+    with pytest.raises(ValueError, match="--sim warp runs .* not 'Pendulum-v1'"):
+        make_vec_env("Pendulum-v1", {}, 2, sim="warp")
+    with pytest.raises(ValueError, match="unknown sim 'gpu'"):
+        make_vec_env(HOPPER_ID, {}, 2, sim="gpu")

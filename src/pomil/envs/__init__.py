@@ -163,15 +163,29 @@ def state_dim(env_id: str, env_kwargs: dict[str, Any]) -> int:
     return env_family(env_id).state_dim(env_id, env_kwargs)
 
 
+SIMS = ("cpu", "warp")
+"""Physics a batched environment can run on: ``cpu`` (each family's own simulator, the default)
+or ``warp`` (MuJoCo Warp on the torch device, :mod:`pomil.envs.warp`; the optional ``gpu`` extra)."""
+
+
 def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
-                 observation_mask: Sequence[int] | None = None, seed: int | None = None):
+                 observation_mask: Sequence[int] | None = None, seed: int | None = None, sim: str = "cpu"):
     """The batched (torch) environment training uses for ``env_id``.
 
     ``reset() -> obs (N, d)``; ``step(actions) -> (obs, reward, terminated,
     truncated)``; one episode per copy between resets.  Circles and Hopper-v5
     have their own batched simulators; every other id runs N gymnasium copies
-    (:class:`pomil.envs.batch.GymSim`).
+    (:class:`pomil.envs.batch.GymSim`).  ``sim="warp"`` runs the MuJoCo
+    locomotion tasks that :data:`pomil.envs.warp.SPECS` lists as MuJoCo Warp
+    worlds on ``device`` instead (ValueError for another id; PomilError when
+    MuJoCo Warp is not installed).
     """
+    if sim == "warp":
+        from pomil.envs.warp import make_warp_vec_env
+
+        return make_warp_vec_env(env_id, env_kwargs, num_envs, device, observation_mask, seed)
+    if sim != "cpu":
+        raise ValueError(f"unknown sim {sim!r}; expected one of {list(SIMS)}")
     return env_family(env_id).make(env_id, env_kwargs, num_envs, device, observation_mask, seed)
 
 
