@@ -16,7 +16,8 @@ Prints, for a MuJoCo locomotion task (Hopper-v5 by default, the paper setting):
    off, everything else timed) with ``sim=warp`` and ``sim=cpu``.
 
     python benchmarks/warp_speed.py --device cpu --num-envs 64,256             # Warp's CPU device: slow, a check
-    python benchmarks/warp_speed.py --device cuda --num-envs 1024,4096,16384,65536 --train-envs 4096,16384,65536 --train-sims warp
+    python benchmarks/warp_speed.py --device cuda --num-envs 1024,4096,16384,65536 \
+        --train-envs 4096,16384,65536 --train-sims warp
 
 Needs the gpu extra (``pip install 'pomil[gpu]'``).
 """
@@ -38,7 +39,8 @@ from pomil.envs.locomotion import HOPPER_ID, HopperSim, locomotion_kwargs, usabl
 from pomil.envs.warp import SPECS, WarpSim
 
 
-def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_states: int, seed: int = 0) -> dict[str, float]:
+def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_states: int,
+              seed: int = 0) -> dict[str, float]:
     """Max |WarpSim - gymnasium| of observations and rewards: one step from the same
     states, and along one episode per env from the same seeds (random actions in the
     control range's scale); the episode ends compared must all agree."""
@@ -86,7 +88,8 @@ def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_st
                 ends += 1
     return {"float64_chaos": float64_chaos(env_id, kwargs, num_envs, seed + 100),
             "one_step_obs": one_obs, "one_step_reward": one_rew, "states": one_step_states * num_envs,
-            "episode_obs": traj_obs, "episode_reward": traj_rew, "episode_steps": steps, "ends": ends, "mismatched": mismatched}
+            "episode_obs": traj_obs, "episode_reward": traj_rew, "episode_steps": steps, "ends": ends,
+            "mismatched": mismatched}
 
 
 def float64_chaos(env_id: str, kwargs: dict, num_envs: int, seed: int) -> float:
@@ -101,7 +104,8 @@ def float64_chaos(env_id: str, kwargs: dict, num_envs: int, seed: int) -> float:
         a.reset(seed=seed + i)
         b.reset(seed=seed + i)
         d = b.unwrapped.data
-        b.unwrapped.set_state(d.qpos.astype(np.float32).astype(np.float64), d.qvel.astype(np.float32).astype(np.float64))
+        rounded = [x.astype(np.float32).astype(np.float64) for x in (d.qpos, d.qvel)]
+        b.unwrapped.set_state(*rounded)
         done = False
         while not done:
             act = rng.uniform(-1, 1, a.action_space.shape)
@@ -157,9 +161,9 @@ def training_speed(demos: str, device: str, num_envs: int, iterations: int, sim:
     from pomil.config import from_dict
 
     with tempfile.TemporaryDirectory() as tmp:
-        values = {"learner": "infogail-pomdp", "demos": demos, "out": tmp, "iterations": iterations, "bc_init_iterations": 0,
-                  "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1, "progress": False, "device": device,
-                  "num_envs": num_envs, "sim": sim}
+        values = {"learner": "infogail-pomdp", "demos": demos, "out": tmp, "iterations": iterations,
+                  "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
+                  "progress": False, "device": device, "num_envs": num_envs, "sim": sim}
         train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
         import csv
 
@@ -187,16 +191,18 @@ def main() -> None:
 
     kwargs = locomotion_kwargs(args.env_id, "forward", args.setting)
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or platform.machine()
-    print(f"torch {torch.__version__}, warp {wp.__version__}, mujoco_warp {mujoco_warp.__version__}, mujoco {mujoco.__version__}; "
+    print(f"torch {torch.__version__}, warp {wp.__version__}, mujoco_warp {mujoco_warp.__version__}, "
+          f"mujoco {mujoco.__version__}; "
           f"{usable_cpus()} usable CPU cores, OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
           f"device {args.device} ({gpu}); {args.env_id}, {args.setting} setting")
     if args.agreement_envs > 0:
         t0 = time.perf_counter()
         a = agreement(args.env_id, kwargs, args.device, args.agreement_envs, one_step_states=25)
-        print(f"agreement with MuJoCo (float64) on {args.device}, {time.perf_counter() - t0:.0f} s: one step from the same state, "
-              f"{a['states']} states: max |obs diff| {a['one_step_obs']:.2e}, max |reward diff| {a['one_step_reward']:.2e}; "
-              f"{args.agreement_envs} episodes from the same seeds ({a['episode_steps']} steps): max |obs diff| "
-              f"{a['episode_obs']:.2e}, max |reward diff| {a['episode_reward']:.2e}, {a['ends']} episode ends compared, "
+        print(f"agreement with MuJoCo (float64) on {args.device}, {time.perf_counter() - t0:.0f} s: "
+              f"one step from the same state, {a['states']} states: max |obs diff| {a['one_step_obs']:.2e}, "
+              f"max |reward diff| {a['one_step_reward']:.2e}; {args.agreement_envs} episodes from the same seeds "
+              f"({a['episode_steps']} steps): max |obs diff| {a['episode_obs']:.2e}, "
+              f"max |reward diff| {a['episode_reward']:.2e}, {a['ends']} episode ends compared, "
               f"{a['mismatched']} mismatched (yardstick: MuJoCo against itself from the float32-rounded start, "
               f"{a['float64_chaos']:.2e})")
     rows = []
@@ -204,7 +210,8 @@ def main() -> None:
         rate, warm = warp_speed(args.env_id, kwargs, args.device, n, args.steps, args.warmup)
         rows.append((f"physics, WarpSim on {args.device} ({n} envs; warm-up {warm:.1f} s)", rate))
         if not args.no_cpu and args.env_id == HOPPER_ID:
-            rows.append((f"physics, HopperSim on {usable_cpus()} CPU cores ({n} envs)", cpu_speed(kwargs, n, args.steps)))
+            name = f"physics, HopperSim on {usable_cpus()} CPU cores ({n} envs)"
+            rows.append((name, cpu_speed(kwargs, n, args.steps)))
     for n in [int(v) for v in args.train_envs.split(",")] if args.train_envs else []:
         for sim in args.train_sims.split(","):
             rows.append((f"InfoGAIL-POMDP training, sim {sim}, device {args.device} ({n} envs, all updates)",

@@ -32,8 +32,9 @@ from pomil.envs import make_vec_env
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs, locomotion_kwargs
 from pomil.envs.warp import SPECS, WarpSim, warp_available
 
-pytestmark = pytest.mark.skipif(not warp_available(), reason="mujoco_warp is not installed (the optional 'gpu' extra: "
-                                                              "pip install 'pomil[gpu]'); the CI venv does not install it")
+pytestmark = pytest.mark.skipif(not warp_available(), reason="mujoco_warp is not installed (the optional 'gpu' "
+                                                              "extra: pip install 'pomil[gpu]'); the CI venv does not "
+                                                              "install it")
 
 ONE_STEP_OBS_ATOL = {HOPPER_ID: 5e-5, "Walker2d-v5": 5e-4, "HalfCheetah-v5": 5e-3}
 ONE_STEP_REWARD_ATOL = 1e-4
@@ -196,8 +197,8 @@ def test_infogail_pomdp_trains_one_iteration_on_warp_physics(tmp_path):
 
     demos = Path(__file__).resolve().parents[2] / "data" / "hopper-paper.npz"
     values = {"learner": "infogail-pomdp", "demos": str(demos), "out": str(tmp_path), "iterations": 1, "num_envs": 4,
-              "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1, "progress": False,
-              "sim": "warp"}
+              "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
+              "progress": False, "sim": "warp"}
     ckpt = train_adversarial(from_dict(AdversarialConfig, values, "test"))
     assert load_checkpoint(ckpt)["env_steps"] == 4 * 128  # paper setting: 128 steps per episode
     row = list(csv.DictReader(open(tmp_path / "metrics.csv", newline="")))[-1]

@@ -97,9 +97,9 @@ class AdversarialConfig(RunConfig):
                                                       "PRESETS)")
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO)", within="[1, inf)")
     num_envs: int = option(256, "episodes collected per iteration", within="[1, inf)")
-    sim: Literal["cpu", "warp"] = option("cpu", "physics of the training rollouts: cpu (MuJoCo on the CPU cores) or warp "
-                                         "(MuJoCo Warp on --device, for Hopper, Walker2d and HalfCheetah; needs the "
-                                         "gpu extra: pip install 'pomil[gpu]')")
+    sim: Literal["cpu", "warp"] = option("cpu", "physics of the training rollouts: cpu (MuJoCo on the CPU cores) or "
+                                         "warp (MuJoCo Warp on --device, for Hopper, Walker2d and HalfCheetah; needs "
+                                         "the gpu extra: pip install 'pomil[gpu]')")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
@@ -618,7 +618,8 @@ def _environment(cfg: AdversarialConfig, device: torch.device):
     env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
     evaluate = make_evaluator(cfg, env_info, demos)
     try:
-        env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device, env_info["observation_mask"], seed=cfg.seed, sim=cfg.sim)
+        env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device, env_info["observation_mask"], seed=cfg.seed,
+                           sim=cfg.sim)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: {err}") from None
     return demos, env_info, evaluate, env, executed_actions_fn(env_id, env_kwargs)

@@ -52,9 +52,9 @@ class ExpertConfig(RunConfig):
                              "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
                              within="[1, inf)")
     num_envs: int = option(64, "environment copies stepped together", within="[1, inf)")
-    sim: Literal["cpu", "warp"] = option("cpu", "physics of the training rollouts: cpu (MuJoCo on the CPU cores) or warp "
-                                         "(MuJoCo Warp on --device, for Hopper, Walker2d and HalfCheetah; needs the "
-                                         "gpu extra: pip install 'pomil[gpu]')")
+    sim: Literal["cpu", "warp"] = option("cpu", "physics of the training rollouts: cpu (MuJoCo on the CPU cores) or "
+                                         "warp (MuJoCo Warp on --device, for Hopper, Walker2d and HalfCheetah; needs "
+                                         "the gpu extra: pip install 'pomil[gpu]')")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
@@ -118,7 +118,8 @@ def _environment(cfg: ExpertConfig, device: torch.device):
     """(batched env, constructor keywords, observation indices or None) of a run."""
     try:
         env_kwargs, mask = cfg.env_settings()
-        return make_vec_env(cfg.env_id, env_kwargs, cfg.num_envs, device, mask, seed=cfg.seed, sim=cfg.sim), env_kwargs, mask
+        env = make_vec_env(cfg.env_id, env_kwargs, cfg.num_envs, device, mask, seed=cfg.seed, sim=cfg.sim)
+        return env, env_kwargs, mask
     except PomilError:
         raise
     except Exception as err:  # unknown id, rejected keywords: gymnasium raises several types

@@ -275,10 +275,12 @@ class WarpSim:
         self.t += 1
         x_velocity = (self.qpos[:, 0] - x_before) / self.dt
         healthy = self.healthy()
-        reward = self.kw["forward_reward_weight"] * x_velocity - self.kw["ctrl_cost_weight"] * actions.square().sum(dim=1)
+        ctrl_cost = self.kw["ctrl_cost_weight"] * actions.square().sum(dim=1)
+        reward = self.kw["forward_reward_weight"] * x_velocity - ctrl_cost
         if self.spec.has_health:
             reward = reward + healthy * float(self.kw["healthy_reward"])
-        terminated = ~healthy if self.spec.has_health and self.kw["terminate_when_unhealthy"] else torch.zeros_like(healthy)
+        can_end = self.spec.has_health and self.kw["terminate_when_unhealthy"]
+        terminated = ~healthy if can_end else torch.zeros_like(healthy)
         truncated = torch.full_like(healthy, self.t >= int(self.kw["max_episode_steps"]))  # as TimeLimit: may coincide
         reward = reward.masked_fill(was_done, 0.0)
         terminated = terminated & ~was_done
@@ -302,7 +304,8 @@ class WarpVecEnv:
     def __init__(self, sim: WarpSim, observation_mask: list[int] | None = None, seed: int | None = None) -> None:
         self.sim = sim
         self.num_envs, self.device, self.act_dim = sim.num_envs, sim.device, sim.act_dim
-        self.mask = None if observation_mask is None else torch.as_tensor(observation_mask, dtype=torch.long, device=sim.device)
+        self.mask = (None if observation_mask is None
+                     else torch.as_tensor(observation_mask, dtype=torch.long, device=sim.device))
         self.obs_dim = sim.obs_dim if self.mask is None else len(self.mask)
         self._seed = seed
         self.full_observation = torch.zeros(sim.num_envs, sim.obs_dim, device=sim.device)
