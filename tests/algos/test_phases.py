@@ -119,7 +119,7 @@ def test_the_absorbing_state_takes_the_lowest_reward_so_falling_never_pays():
 
 
 def test_absorbing_termination_leaves_batches_without_terminations_unchanged(demos):
-    run, c = make_run(demos)
+    run, c = make_run(demos, termination="absorbing")
     assert not c.rollout.terminated.any()
     a, _ = with_rewards(run, c.rollout, c.codes, c.next_values)
     e, _ = with_rewards(replace(run, cfg=replace(run.cfg, termination="end")), c.rollout, c.codes, c.next_values)
