@@ -54,6 +54,12 @@ def _adversarial(name: str, text: str) -> Learner:
     return Learner(name, text, "pomil.algos.adversarial", "AdversarialConfig", "train_adversarial", {"learner": name})
 
 
+def _ablation(name: str, text: str, **fixed: Any) -> Learner:
+    """InfoGAIL-POMDP with one part taken away (``pomil reproduce`` and ``pomil sweep`` only)."""
+    return Learner(name, text, "pomil.algos.adversarial", "AdversarialConfig", "train_adversarial",
+                   {"learner": "infogail-pomdp", **fixed}, command=False)
+
+
 def _bc(name: str, text: str, **fixed: Any) -> Learner:
     return Learner(name, text, "pomil.algos.bc", "BCConfig", "train_bc", fixed, command=not fixed)
 
@@ -66,11 +72,23 @@ LEARNERS: dict[str, Learner] = {learner.name: learner for learner in (
     _adversarial("infogail", "InfoGAIL: MLP networks, latent codes, Wasserstein critic"),
     _adversarial("infogail-pomdp", "InfoGAIL-POMDP (the paper's method): separate GRU belief encoders, codes, "
                                    "Wasserstein critic"),
+    _ablation("igp-warm-start", "ablation: InfoGAIL-POMDP's mixture warm start alone (no adversarial iteration)",
+              iterations=0),
+    _ablation("igp-no-mi", "ablation: InfoGAIL-POMDP without the mutual-information reward (lambda1 = 0)",
+              mi_weight=0.0),
+    _ablation("igp-shared-belief", "ablation: one GRU belief shared by policy, value, critic and posterior",
+              belief="shared"),
+    _ablation("igp-policy-belief", "ablation: a GRU belief in the policy only; value, critic and posterior "
+                                   "feed-forward", belief="policy"),
+    _ablation("igp-no-bc", "ablation: InfoGAIL-POMDP without the BC term in the policy loss", bc_weight=0.0),
 )}
 """Every learner by name."""
 
 ADVERSARIAL = tuple(name for name, learner in LEARNERS.items() if learner.module == "pomil.algos.adversarial")
-"""The adversarial learners (one loop, configured)."""
+"""The adversarial learners (one loop, configured), the ablations included."""
+
+ABLATIONS = tuple(name for name in ADVERSARIAL if name.startswith("igp-"))
+"""InfoGAIL-POMDP with one part taken away (issue: what each part adds)."""
 
 
 def learner(name: str, where: str = "learner") -> Learner:

@@ -56,7 +56,9 @@ class LearnerRuns(RayOptions):
     """What a reproduction over learners has: which learners, and how long each trains."""
 
     learners: tuple[str, ...] = option(("bc-mlp", "bc-gru", "gail", "infogail", "infogail-pomdp"),
-                                       "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp")
+                                       "comma-separated learners: bc-mlp, bc-gru, gail, infogail, infogail-pomdp, "
+                                       "and the ablations igp-warm-start, igp-no-mi, igp-shared-belief, "
+                                       "igp-policy-belief, igp-no-bc")
     bc_iterations: int = option(0, "gradient steps for behaviour cloning (0: BCConfig's default)", within="[0, inf)")
     adversarial_iterations: int = option(0,
                                          "iterations for gail, infogail and infogail-pomdp (0: AdversarialConfig's "
@@ -114,7 +116,8 @@ def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: 
     values: dict[str, Any] = {"iterations": iterations} if iterations else {}
     if cfg.adversarial_config:
         values.update(load_config_file(cfg.adversarial_config))
-    values.update(learner=learner, demos=demos or cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress)
+    values.update(demos=demos or cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress,
+                  **LEARNERS[learner].fixed)  # the learner's name: its kind, and an ablation's part taken away
     return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the reproduction's settings")
 
 

@@ -532,7 +532,7 @@ class RunLoop:
         self.iteration = begun.iteration
         self.env_steps = begun.env_steps if env_steps else None
         self.guard.saved(begun.iteration)
-        if begun.iteration == self.config.iterations:
+        if self.resume and begun.iteration == self.config.iterations:
             print(f"pomil: note: {self.ckpt_path} is already at iteration {begun.iteration}: nothing to do",
                   file=sys.stderr)
             return False
@@ -571,6 +571,8 @@ class RunLoop:
             if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
                 save_run_checkpoint(self.ckpt_path, logger, self.guard, it, self.state())
             logger.update()
+        if cfg.iterations == 0:  # a learner allowed no iterations (the adversarial warm start alone)
+            save_run_checkpoint(self.ckpt_path, logger, self.guard, 0, self.state())
         logger.close()
         return self.ckpt_path
 

@@ -214,6 +214,53 @@ def test_shared_value_encoder_is_one_module_trained_once(demos_path, tmp_path):
     assert len(ckpt["optimizers"]["value"]["param_groups"][0]["params"]) == len(list(m.value.mlp.parameters()))
 
 
+def test_a_shared_belief_is_one_encoder_stepped_by_every_loss(demos_path, tmp_path):
+    def run(belief):
+        cfg = _cfg(demos_path, tmp_path / belief, learner="infogail-pomdp", belief=belief, iterations=2,
+                   policy_warmup_iterations=5)  # the policy's own optimiser never steps
+        return cfg, load_checkpoint(train_adversarial(cfg))
+
+    cfg, shared = run("shared")
+    m, _ = build_modules(cfg, 2, 2, 2, "cpu")
+    assert m.value.encoder is m.critic.encoder is m.posterior.encoder is m.policy.encoder
+    enc = {k: v for k, v in shared["nets"]["policy"].items() if k.startswith("encoder.")}
+    for net in ("value", "critic", "posterior"):
+        assert all(torch.equal(shared["nets"][net][k], v) for k, v in enc.items())
+    assert len(shared["optimizers"]["value"]["param_groups"][0]["params"]) == len(list(m.value.mlp.parameters()))
+    # same seed, same initial policy: separate, its encoder waits out the warm-up; shared, the critic's and
+    # posterior's losses move it
+    _, separate = run("separate")
+    assert any(not torch.equal(v, separate["nets"]["policy"][k]) for k, v in enc.items())
+
+
+def test_a_policy_only_belief_gives_feed_forward_value_critic_and_posterior(demos_path, tmp_path):
+    cfg = _cfg(demos_path, tmp_path / "p", learner="infogail-pomdp", belief="policy")
+    m, _ = build_modules(cfg, 2, 2, 2, "cpu")
+    recurrent = {name: any(isinstance(x, torch.nn.GRU | torch.nn.GRUCell) for x in net.modules())
+                 for name, net in (("policy", m.policy), ("value", m.value), ("critic", m.critic),
+                                   ("posterior", m.posterior))}
+    assert recurrent == {"policy": True, "value": False, "critic": False, "posterior": False}
+    assert load_checkpoint(train_adversarial(cfg))["iteration"] == 3
+
+
+def test_zero_iterations_is_the_warm_start_alone_evaluated_and_saved(demos_path, tmp_path):
+    import csv
+
+    cfg = _cfg(demos_path, tmp_path / "w", learner="infogail-pomdp", iterations=0, bc_init_iterations=20,
+               posterior_init_iterations=5)
+    ckpt = load_checkpoint(train_adversarial(cfg))
+    assert ckpt["iteration"] == 0 and ckpt["env_steps"] == 0
+    with open(tmp_path / "w" / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["iteration"] for r in rows] == ["0"] and float(rows[0]["eval/nmi"]) >= 0.0
+    assert rows[0]["init/bc_nll"] != ""
+    # resuming it is nothing to do; a longer run continues from it
+    assert load_checkpoint(train_adversarial(cfg, resume=True))["iteration"] == 0
+    longer = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "w", learner="infogail-pomdp", iterations=1,
+                                                    bc_init_iterations=20, posterior_init_iterations=5), resume=True))
+    assert longer["iteration"] == 1
+
+
 def test_noisy_expert_actions_carry_the_policy_noise_and_stay_shifted(demos_path, tmp_path):
     import math
 

@@ -95,7 +95,8 @@ class AdversarialConfig(RunConfig):
                                                       "named settings under the config file and flags: default "
                                                       "(pomil's measured recipe) or paper-text (the paper's text, see "
                                                       "PRESETS)")
-    iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO)", within="[1, inf)")
+    iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
+                             within="[0, inf)")
     num_envs: int = option(256, "episodes collected per iteration", within="[1, inf)")
     sim: Literal["cpu", "warp"] = option("cpu", "physics of the training rollouts: cpu (MuJoCo on the CPU cores) or "
                                          "warp (MuJoCo Warp on --device, for Hopper, Walker2d and HalfCheetah; needs "
@@ -113,6 +114,10 @@ class AdversarialConfig(RunConfig):
     shared_value_encoder: bool = option(False,
                                         "value head on the policy's encoder instead of its own (measured: see "
                                         "docs/method.md)")
+    belief: Literal["separate", "shared", "policy"] = option(
+        "separate", "belief encoders: separate = policy, value, critic and posterior each have their own (the paper); "
+                    "shared = one encoder for all four, trained by every loss; policy = the policy's only, value, "
+                    "critic and posterior feed-forward (the last two are ablations)")
     lr_critic: float = option(5e-4, "critic learning rate", within="(0, inf)")
     lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("adam", "adam (the paper's code) or rmsprop (its text)")
@@ -395,19 +400,24 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
 # ---------------------------------------------------------------------- train
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
                   device: torch.device | str) -> tuple[Modules, PolicyArch]:
-    preset = LEARNER_KINDS[cfg.learner]
-    enc = preset["encoder"]
+    enc = LEARNER_KINDS[cfg.learner]["encoder"]
     arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean)
     policy = GaussianPolicy(arch).to(device)
-    value = heads.value(obs_dim, act_dim, num_codes, enc, cfg.hidden_size).to(device)
-    if cfg.shared_value_encoder:
+    heads_enc = "mlp" if cfg.belief == "policy" else enc
+    value = heads.value(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size).to(device)
+    if cfg.shared_value_encoder or cfg.belief == "shared":
         value.encoder = policy.encoder  # one module: the value loss also trains the policy's encoder
     m = Modules(
         policy=policy,
         value=value,
-        critic=heads.critic(obs_dim, act_dim, enc, cfg.hidden_size).to(device),
-        posterior=heads.posterior(obs_dim, act_dim, num_codes, enc, cfg.hidden_size).to(device) if num_codes else None,
+        critic=heads.critic(obs_dim, act_dim, heads_enc, cfg.hidden_size).to(device),
+        posterior=(heads.posterior(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size).to(device)
+                   if num_codes else None),
     )
+    if cfg.belief == "shared":  # one belief b_t for all four; each loss's own optimiser steps it
+        m.critic.encoder = policy.encoder
+        if m.posterior is not None:
+            m.posterior.encoder = policy.encoder
     return m, arch
 
 
@@ -466,8 +476,8 @@ class AdversarialRun:
 def build_optimizers(cfg: AdversarialConfig, m: Modules) -> dict[str, torch.optim.Optimizer]:
     opt = {
         "policy": torch.optim.Adam(m.policy.parameters(), lr=cfg.lr),
-        "value": torch.optim.Adam(m.value.mlp.parameters() if cfg.shared_value_encoder else m.value.parameters(),
-                                  lr=cfg.lr_value),
+        "value": torch.optim.Adam(m.value.mlp.parameters() if m.value.encoder is m.policy.encoder
+                                  else m.value.parameters(), lr=cfg.lr_value),
         "critic": (torch.optim.RMSprop(m.critic.parameters(), lr=cfg.lr_critic) if cfg.critic_optimizer == "rmsprop"
                    else torch.optim.Adam(m.critic.parameters(), lr=cfg.lr_critic, betas=(0.5, 0.9))),
     }
