@@ -35,6 +35,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from any_task_speed import batched_speed  # this script's folder is on sys.path
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, locomotion_kwargs, usable_cpus
 from pomil.envs.warp import SPECS, WarpSim
 
@@ -138,17 +139,7 @@ def warp_speed(env_id: str, kwargs: dict, device: str, num_envs: int, steps: int
 
 
 def cpu_speed(kwargs: dict, num_envs: int, steps: int) -> float:
-    sim = HopperSim(num_envs, kwargs)
-    rng = np.random.default_rng(0)
-    sim.reset(0)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        if sim.done.all():
-            sim.reset()
-        sim.step(rng.uniform(-1, 1, (num_envs, sim.act_dim)))
-    rate = steps * num_envs / (time.perf_counter() - t0)
-    sim.close()
-    return rate
+    return batched_speed(HopperSim(num_envs, kwargs), steps)
 
 
 def sync(device: torch.device) -> None:
