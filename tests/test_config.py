@@ -45,7 +45,7 @@ def test_every_numeric_field_declares_its_interval_and_defaults_lie_in_it(cls):
     ({"iterations": 2.5}, "config key 'iterations': expected int, got 2.5"),
     ({"iterations": "2.5"}, "config key 'iterations': expected int, got '2.5'"),
     ({"iterations": True}, "config key 'iterations': expected int, got True"),
-    ({"iterations": 0}, "config key 'iterations': expected an integer in [1, inf), got 0"),
+    ({"iterations": -1}, "config key 'iterations': expected an integer in [0, inf), got -1"),
     ({"mi_weight": -1}, "config key 'mi_weight': expected a finite number in [0, inf), got -1"),
     ({"mi_weight": float("nan")}, "config key 'mi_weight': expected a finite number in [0, inf), got nan"),
     ({"log_std_init": float("nan")}, "config key 'log_std_init': expected a finite number in (-inf, inf), got nan"),
@@ -68,6 +68,9 @@ def test_out_of_range_values_are_refused_naming_field_value_and_interval(values,
 
 def test_boundaries_are_as_declared():
     assert from_dict(AdversarialConfig, {"gamma": 1.0, "gae_lambda": 1, "eval_every": 0, "mi_weight": 0}).gamma == 1.0
+    assert from_dict(AdversarialConfig, {"iterations": 0}).iterations == 0  # the warm start alone
+    with pytest.raises(ConfigError, match=r"'iterations': expected an integer in \[1, inf\), got 0"):
+        from_dict(BCConfig, {"iterations": 0})
     assert from_dict(ExpertConfig, {"lr": 1e-9, "ent_coef": 0.0}).lr == 1e-9
     assert from_dict(MergeDemosConfig, {"episodes": 0, "proportions": [1, 0.5]}).proportions == (1.0, 0.5)
     with pytest.raises(ConfigError, match=r"'proportions': expected a finite number in \[0, inf\), got -1"):
