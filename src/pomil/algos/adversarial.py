@@ -47,7 +47,7 @@ from pomil.algos.bc import MixtureAssignment, bc_step, demo_batch, demo_nll, fir
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
-from pomil.envs import default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
+from pomil.envs import SIM_HELP, default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import ConfigError, PomilError
 from pomil.nn import heads
@@ -98,9 +98,7 @@ class AdversarialConfig(RunConfig):
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
                              within="[0, inf)")
     num_envs: int = option(256, "episodes collected per iteration", within="[1, inf)")
-    sim: Literal["cpu", "warp"] = option("cpu", "physics of the training rollouts: cpu (MuJoCo on the CPU cores) or "
-                                         "warp (MuJoCo Warp on --device, for Hopper, Walker2d and HalfCheetah; needs "
-                                         "the gpu extra: pip install 'pomil[gpu]')")
+    sim: Literal["cpu", "warp"] = option("cpu", SIM_HELP)
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")

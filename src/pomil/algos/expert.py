@@ -21,7 +21,7 @@ from typing import ClassVar, Literal
 import torch
 
 from pomil.config import RunConfig, option, parse_kwargs
-from pomil.envs import executed_actions_fn, make_vec_env
+from pomil.envs import SIM_HELP, executed_actions_fn, make_vec_env
 from pomil.envs.locomotion import HOPPER_ID, locomotion_kwargs
 from pomil.envs.wrappers import parse_mask, resolve_observation_mask
 from pomil.errors import PomilError
@@ -52,9 +52,7 @@ class ExpertConfig(RunConfig):
                              "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
                              within="[1, inf)")
     num_envs: int = option(64, "environment copies stepped together", within="[1, inf)")
-    sim: Literal["cpu", "warp"] = option("cpu", "physics of the training rollouts: cpu (MuJoCo on the CPU cores) or "
-                                         "warp (MuJoCo Warp on --device, for Hopper, Walker2d and HalfCheetah; needs "
-                                         "the gpu extra: pip install 'pomil[gpu]')")
+    sim: Literal["cpu", "warp"] = option("cpu", SIM_HELP)
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")

@@ -166,6 +166,9 @@ def state_dim(env_id: str, env_kwargs: dict[str, Any]) -> int:
 SIMS = ("cpu", "warp")
 """Physics a batched environment can run on: ``cpu`` (each family's own simulator, the default)
 or ``warp`` (MuJoCo Warp on the torch device, :mod:`pomil.envs.warp`; the optional ``gpu`` extra)."""
+SIM_HELP = ("physics of the training rollouts: cpu (MuJoCo on the CPU cores) or warp (MuJoCo Warp on --device, for "
+            "Hopper, Walker2d and HalfCheetah; needs the gpu extra: pip install 'pomil[gpu]')")
+"""The ``sim`` option's help, shared by every config that collects rollouts."""
 
 
 def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
