@@ -14,10 +14,16 @@ Prints env-steps/s of:
    so that only the loop is timed);
 6. with ``--rollout-threads 1,0``: item 5 once per setting of the
    ``rollout_threads`` option (1, the default: the rollout's policy steps on one
-   torch thread; 0: torch's own thread count), to show what it is worth.
+   torch thread; 0: torch's own thread count), to show what it is worth;
+7. the peers, when the ``bench`` extra is installed (``pip install -e '.[bench]'``):
+   Stable-Baselines3's PPO (MLP) and sb3-contrib's RecurrentPPO (LSTM) training on
+   the same task (Hopper-v5, paper setting, positions only), ``--peer-envs`` envs in
+   SB3's ``DummyVecEnv``, SB3's defaults except ``n_steps`` (so that a rollout is
+   ``--peer-envs`` x 256 steps), ``--iterations`` rollouts each.  The last lines
+   print pomil's InfoGAIL-POMDP training / each peer, from this one run.
 
     .venv/bin/python benchmarks/hopper_speed.py [--num-envs 256] [--iterations 3] [--device cpu]
-        [--train-envs 256,1024,4096] [--rollout-threads 1,0]
+        [--train-envs 256,1024,4096] [--rollout-threads 1,0] [--peer-envs 8]
 
 ``--train-envs`` times InfoGAIL-POMDP training once per number of parallel
 environments (for a GPU: many environments, large batches).
@@ -38,7 +44,9 @@ from any_task_speed import batched_speed, gym_vector_speed  # benchmarks/ is on 
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.expert import ExpertConfig, train_expert
 from pomil.config import from_dict
+from pomil.data import load_training_demos
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs, usable_cpus
+from pomil.envs.wrappers import ObservationMask
 
 
 def gym_single_speed(steps: int) -> float:
@@ -50,6 +58,28 @@ def gym_single_speed(steps: int) -> float:
         _, _, term, trunc, _ = env.step(env.action_space.sample())
         if term or trunc:
             env.reset()
+    return steps / (time.perf_counter() - t0)
+
+
+def peer_speed(kind: str, demos: str, n_envs: int, rollouts: int, device: str) -> float | None:
+    """Env-steps/s of a Stable-Baselines3 learner's ``learn`` (rollouts and updates) on the
+    demonstrations' task and observation mask; None without the ``bench`` extra."""
+    try:
+        from stable_baselines3 import PPO
+        from stable_baselines3.common.env_util import make_vec_env
+    except ImportError:
+        return None
+    data, env_id, env_kwargs = load_training_demos(demos)
+    env = make_vec_env(env_id, n_envs=n_envs, seed=0, env_kwargs=env_kwargs, wrapper_class=ObservationMask,
+                       wrapper_kwargs={"indices": data.metadata["observation_mask"]})
+    if kind == "ppo":
+        model = PPO("MlpPolicy", env, n_steps=256, seed=0, device=device)
+    else:
+        from sb3_contrib import RecurrentPPO
+        model = RecurrentPPO("MlpLstmPolicy", env, n_steps=256, seed=0, device=device)
+    steps = n_envs * 256 * rollouts
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=steps)
     return steps / (time.perf_counter() - t0)
 
 
@@ -67,6 +97,7 @@ def main() -> None:
     ap.add_argument("--train-envs", default="", help="comma-separated env counts for 5 (default: --num-envs)")
     ap.add_argument("--rollout-threads", default="1",
                     help="comma-separated rollout_threads settings for 5 (0: torch's own)")
+    ap.add_argument("--peer-envs", type=int, default=8, help="environments of the SB3 peers (7; 0: skip them)")
     args = ap.parse_args()
     n = args.num_envs
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
@@ -99,11 +130,23 @@ def main() -> None:
                 rows.append((what, float(row["time/env_steps_per_s"])))
                 shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
                 share_lines.append(f"time shares, {what}: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
+    ours = rows[-1][1]  # InfoGAIL-POMDP training, the last setting timed
+    peers = []
+    for kind, name in (("ppo", "SB3 PPO (MLP)"), ("recurrent", "sb3-contrib RecurrentPPO (LSTM)")):
+        v = peer_speed(kind, args.demos, args.peer_envs, args.iterations, args.device) if args.peer_envs else None
+        if v is not None:
+            peers.append(name)
+            rows.append((f"{name} training ({args.peer_envs} envs)", v))
     base = rows[1][1]
     print(f"{'what':70s} {'env-steps/s':>12s} {'vs SyncVectorEnv':>17s}")
     for name, v in rows:
         print(f"{name:70s} {v:12,.0f} {v / base:16.2f}x")
     print("\n".join(share_lines))
+    if not peers and args.peer_envs:
+        print("peers: not measured (pip install -e '.[bench]' for SB3 and sb3-contrib)")
+    for name in peers:
+        v = next(v for n, v in rows if n.startswith(name))
+        print(f"pomil InfoGAIL-POMDP training / {name}: {ours / v:.2f}x")
 
 
 if __name__ == "__main__":

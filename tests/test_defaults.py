@@ -19,7 +19,9 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     cfg = AdversarialConfig()
     assert (cfg.critic_optimizer, cfg.gradient_penalty, cfg.weight_clip, cfg.lr_critic) == ("adam", 10.0, 0.0, 5e-4)
     assert (cfg.bc_init_codes, cfg.bc_init_iterations, cfg.bc_weight, cfg.lr, cfg.policy_warmup_iterations) == (
-        "mixture", 3000, 10.0, 5e-5, 5)
+        "mixture", 600, 10.0, 5e-5, 5)
+    assert (cfg.bc_init_lr, cfg.bc_init_lr_decay, cfg.bc_init_log_std_lr_scale, cfg.bc_init_fit_log_std) == (
+        3e-3, True, 10.0, True)
     assert cfg.mixture_balance == "dataset"
     assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "default")
     # a reproduction adds only the run's own fields to the defaults

@@ -1,4 +1,6 @@
 import csv
+import dataclasses
+import math
 
 import pytest
 import torch
@@ -196,3 +198,92 @@ def test_the_whole_set_assignment_refreshes_every_10_steps_or_once_per_pass():
                               False) is None  # no mixture: nothing to assign
     assert mixture_assignment(AdversarialConfig(mixture_balance="batch"), episodes(600), torch.zeros(3, 600, 2),
                               True) is None
+
+
+def _constant_mean_policy(num_codes=0, offsets=None):
+    """An MLP policy whose mean is (0.5, -1), plus ``offsets[k]`` on the first dimension under code k:
+    a zeroed encoder (features 0), the code's embedding on feature 0, a linear mean head reading it."""
+    from pomil.nn.policy import GaussianPolicy, PolicyArch
+
+    policy = GaussianPolicy(PolicyArch(2, 2, "mlp", 8, num_codes=num_codes))
+    policy.mean = torch.nn.Linear(8, 2)
+    with torch.no_grad():
+        for p in policy.encoder.parameters():
+            p.zero_()
+        policy.mean.weight.zero_()
+        policy.mean.bias.copy_(torch.tensor([0.5, -1.0]))
+        if num_codes:
+            policy.code_embed.weight.zero_()
+            policy.code_embed.weight[0] = torch.tensor(offsets)
+            policy.mean.weight[0, 0] = 1.0
+    return policy
+
+
+def test_fit_log_std_is_the_masked_mean_squared_error_per_dimension():
+    """Mean (0.5, -1) everywhere; the padded steps' actions (1000) must not count."""
+    from pomil.algos.bc import fit_log_std
+    from pomil.data import PaddedEpisodes
+    from pomil.nn.policy import shift_actions
+
+    actions = torch.tensor([[[0.5 + 0.3, -1.0], [0.5 - 0.1, -1.0 + 2.0]],
+                            [[0.5 + 0.2, -1.0 - 1.0], [1000.0, 1000.0]]])  # (T 2, E 2, 2); step (1, 1) padded
+    mask = torch.tensor([[True, True], [True, False]])
+    data = PaddedEpisodes(torch.zeros(2, 2, 2), actions, mask)
+    policy = _constant_mean_policy()
+    stats = fit_log_std(policy, data, shift_actions(actions))
+    expected = 0.5 * torch.tensor([(0.09 + 0.01 + 0.04) / 3, (0.0 + 4.0 + 1.0) / 3]).log()
+    torch.testing.assert_close(policy.log_std.data, expected)
+    assert stats["bc/log_std"] == pytest.approx(expected.mean().item())
+
+
+def test_fit_log_std_weights_each_code_by_its_responsibility():
+    """Two codes with means 0.5 + 2 and 0.5 - 2 on the first dimension; episode 0 acts 2.6 and
+    episode 1 acts -1.3: with the mixture each is explained by its nearer code (errors 0.1 and
+    0.2), without it (random codes) by both alike."""
+    from pomil.algos.bc import fit_log_std, mixture_bc_loss
+    from pomil.data import PaddedEpisodes
+    from pomil.nn.policy import shift_actions
+
+    actions = torch.tensor([[[2.6, -1.0], [-1.3, -1.0]]]).expand(3, 2, 2).contiguous()  # (T 3, E 2, 2)
+    data = PaddedEpisodes(torch.zeros(3, 2, 2), actions, torch.ones(3, 2, dtype=torch.bool))
+    prev = shift_actions(actions)
+    policy = _constant_mean_policy(2, [2.0, -2.0])
+    with torch.no_grad():
+        policy.log_std.fill_(-2.0)  # sharp enough that each episode's responsibility is all on its nearer code
+    resp = mixture_bc_loss(policy, data, prev)[1]
+    torch.testing.assert_close(resp, torch.eye(2), atol=1e-6, rtol=0)
+    stats = fit_log_std(policy, data, prev, mixture=True)
+    assert policy.log_std[0].item() == pytest.approx(0.5 * math.log((0.1 ** 2 + 0.2 ** 2) / 2), abs=1e-5)
+    assert policy.log_std[1].item() == pytest.approx(0.5 * math.log(1e-12), abs=1e-3)  # no error: the floor
+    assert stats["bc/nll"] == pytest.approx(mixture_bc_loss(policy, data, prev)[0].item())
+    fit_log_std(policy, data, prev, mixture=False)  # every code alike: errors 0.1, 4.1 (episode 0), 3.8, 0.2
+    assert policy.log_std[0].item() == pytest.approx(0.5 * math.log((0.01 + 4.1 ** 2 + 3.8 ** 2 + 0.04) / 4), abs=1e-5)
+
+
+def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
+    """Adam's log-std group runs at bc_init_log_std_lr_scale x bc_init_lr; the rate falls linearly
+    to 0 over the steps; paper-text keeps the earlier warm start (1e-3, 1x, no decay, no fit)."""
+    from pomil.algos.adversarial import AdversarialConfig, warm_start_optimizer
+    from pomil.config import from_dict
+    from pomil.nn.policy import GaussianPolicy, PolicyArch
+
+    policy = GaussianPolicy(PolicyArch(2, 2, "gru", 8, num_codes=2))
+    cfg = AdversarialConfig()
+    assert (cfg.bc_init_iterations, cfg.bc_init_lr, cfg.bc_init_log_std_lr_scale) == (600, 3e-3, 10.0)
+    opt, decay = warm_start_optimizer(policy, dataclasses.replace(cfg, bc_init_iterations=4))
+    assert [g["lr"] for g in opt.param_groups] == [3e-3, pytest.approx(3e-2)]
+    assert opt.param_groups[1]["params"] == [policy.log_std]
+    assert sum(p.numel() for g in opt.param_groups for p in g["params"]) == sum(p.numel() for p in policy.parameters())
+    lrs = []
+    for _ in range(4):
+        opt.step()
+        decay.step()
+        lrs.append(opt.param_groups[0]["lr"])
+    assert lrs == pytest.approx([2.25e-3, 1.5e-3, 0.75e-3, 0.0])
+    opt, decay = warm_start_optimizer(policy, dataclasses.replace(cfg, bc_init_lr_decay=False))
+    opt.step()
+    decay.step()
+    assert opt.param_groups[0]["lr"] == 3e-3
+    text = from_dict(AdversarialConfig, {"preset": "paper-text"})
+    assert (text.bc_init_lr, text.bc_init_lr_decay, text.bc_init_log_std_lr_scale, text.bc_init_fit_log_std) == (
+        1e-3, False, 1.0, False)

@@ -43,7 +43,8 @@ from typing import Any, Callable, ClassVar, Iterator, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import MixtureAssignment, bc_step, demo_batch, demo_nll, first_step_starts, most_likely_codes
+from pomil.algos.bc import (MixtureAssignment, bc_step, demo_batch, demo_nll, first_step_starts, fit_log_std,
+                            most_likely_codes)
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
@@ -151,9 +152,18 @@ class AdversarialConfig(RunConfig):
                                                         "recurrent updates: whole sequences or random windows from a "
                                                         "zero state")
     window_length: int = option(8, "steps per window in window mode", within="[1, inf)")
-    bc_init_iterations: int = option(3000, "behaviour-cloning steps on the demonstrations before adversarial training "
-                                           "(the warm start; 0: off)", within="[0, inf)")
-    bc_init_lr: float = option(1e-3, "Adam learning rate of the behaviour-cloning warm start", within="(0, inf)")
+    bc_init_iterations: int = option(600, "behaviour-cloning steps on the demonstrations before adversarial training "
+                                          "(the warm start; 0: off)", within="[0, inf)")
+    bc_init_lr: float = option(3e-3, "Adam learning rate of the behaviour-cloning warm start (its first step; see "
+                                     "bc_init_lr_decay)", within="(0, inf)")
+    bc_init_lr_decay: bool = option(True, "decay the warm start's learning rate linearly to 0 over its steps")
+    bc_init_log_std_lr_scale: float = option(10.0, "the warm start's learning rate of the policy's log std, as a "
+                                                   "multiple of bc_init_lr (Adam moves a parameter by about lr a "
+                                                   "step: at 1x the log std needs thousands of steps to fit "
+                                                   "deterministic demonstrations)", within="(0, inf)")
+    bc_init_fit_log_std: bool = option(True, "end the warm start by setting the log std to its maximum-likelihood "
+                                             "value given the means: each action dimension's mean squared error on "
+                                             "all demonstrations (weighted by the codes' responsibilities)")
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
     bc_init_codes: Literal["random", "mixture"] = option("mixture",
                                                          "codes in the warm start: random per episode (InfoGAIL), or "
@@ -191,7 +201,8 @@ class AdversarialConfig(RunConfig):
         "paper-text": {
             "critic_optimizer": "rmsprop", "weight_clip": 0.01, "gradient_penalty": 0.0, "lr": 2e-4, "lr_critic": 2e-4,
             "lr_posterior": 2e-4, "update_mode": "window", "bc_init_codes": "random", "bc_init_iterations": 300,
-            "bc_weight": 0.0, "policy_warmup_iterations": 0,
+            "bc_init_lr": 1e-3, "bc_init_lr_decay": False, "bc_init_log_std_lr_scale": 1.0,
+            "bc_init_fit_log_std": False, "bc_weight": 0.0, "policy_warmup_iterations": 0,
         },
     }
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
@@ -720,16 +731,19 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     demonstrations' likelihood under a uniform mixture of its codes, so each code clones
     its own cluster of episodes; the posterior then learns, on the demonstrations, to
     tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
-    opt = torch.optim.Adam(m.policy.parameters(), lr=cfg.bc_init_lr)
+    opt, decay = warm_start_optimizer(m.policy, cfg)
     stats: dict[str, float] = {}
     assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
     for step in range(1, cfg.bc_init_iterations + 1):
         stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
+        decay.step()
         if guard is not None:
             where = f"warm-start step {step}"
             guard.value(where, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
             guard.grads(where, "warm-start policy", m.policy.parameters())
             guard.params(where, {"warm-start policy": m.policy})
+    if cfg.bc_init_fit_log_std:
+        stats.update(fit_log_std(m.policy, expert, expert_prev, mixture))
     if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = most_likely_codes(m.policy, expert, expert_prev)
         stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
@@ -747,6 +761,18 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
             post_opt.step()
         stats.update(s)
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
+
+
+def warm_start_optimizer(policy: GaussianPolicy,
+                         cfg: AdversarialConfig) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam over the policy, its log std at ``bc_init_log_std_lr_scale`` times ``bc_init_lr``, and
+    the schedule to step after each update: linear decay to 0 over the warm start (``bc_init_lr_decay``)."""
+    rest = [p for name, p in policy.named_parameters() if name != "log_std"]
+    opt = torch.optim.Adam([{"params": rest}, {"params": [policy.log_std],
+                                               "lr": cfg.bc_init_lr * cfg.bc_init_log_std_lr_scale}],
+                           lr=cfg.bc_init_lr)
+    steps = cfg.bc_init_iterations
+    return opt, torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / steps if cfg.bc_init_lr_decay else 1.0)
 
 
 def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],

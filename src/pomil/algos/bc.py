@@ -190,6 +190,31 @@ def _mixture_nll(policy: GaussianPolicy, dist_every_code, data: PaddedEpisodes,
                         "bc/log_std": policy.log_std.mean().item()}
 
 
+@torch.no_grad()
+def fit_log_std(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor,
+                mixture: bool = False) -> dict[str, float]:
+    """Set the policy's state-independent log std to its maximum-likelihood value given its
+    means on all demonstration steps: log std_d = 0.5 log mean_t (a_td - mu_td)^2.  With
+    ``mixture``, each code's squared errors count with its balanced responsibility for the
+    episode (those of :func:`mixture_bc_loss`, under the std before the fit); a policy with
+    codes but no mixture counts every code alike (the expectation under a random code).
+    Returns the demonstrations' NLL per step after the fit (with ``mixture``) and the log std."""
+    feats = episode_features(policy, data.observations, prev_actions, data.mask)
+    m = data.mask.to(data.actions.dtype)
+    if policy.arch.num_codes:
+        dist, k = policy.dist_every_code(feats), policy.arch.num_codes
+        resp = _mixture_nll(policy, dist, data)[1] if mixture else torch.full((k, m.shape[1]), 1 / k, device=m.device)
+        sq = (resp[:, None, :, None] * (dist.mean - data.actions.unsqueeze(0)) ** 2).sum(0)
+    else:
+        sq = (policy.dist(feats).mean - data.actions) ** 2
+    var = (sq * m.unsqueeze(-1)).sum((0, 1)) / m.sum()
+    policy.log_std.copy_(0.5 * var.clamp_min(1e-12).log())
+    stats = {"bc/log_std": policy.log_std.mean().item()}
+    if mixture and policy.arch.num_codes:
+        stats["bc/nll"] = _mixture_nll(policy, policy.dist_every_code(feats), data)[0].item()
+    return stats
+
+
 def balanced_responsibilities(scores: torch.Tensor, iterations: int = 50) -> torch.Tensor:
     """Soft assignment (K, B) of B items to K codes, each item's column summing to 1 and
     each code's row to B / K, close to softmax(scores) over codes (log-domain Sinkhorn)."""
