@@ -772,7 +772,7 @@ def warm_start_optimizer(policy: GaussianPolicy,
                                                "lr": cfg.bc_init_lr * cfg.bc_init_log_std_lr_scale}],
                            lr=cfg.bc_init_lr)
     steps = cfg.bc_init_iterations
-    return opt, torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / steps if cfg.bc_init_lr_decay else 1.0)
+    return opt, torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / max(steps, 1) if cfg.bc_init_lr_decay else 1.0)
 
 
 def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],

@@ -48,30 +48,45 @@ def figure1(
 
 
 def learning_curves(results: dict, path: str | Path) -> None:
+    """:func:`curves_figure`, written to ``path`` as a PNG."""
+    import matplotlib.pyplot as plt
+
+    fig = curves_figure(results)
+    atomic_write(Path(path), lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+
+
+def curves_figure(results: dict):
     """Figure-2c-style panels, one per task: normalised return of the code matched
     to the task over environment steps, mean +- std over seeds per adversarial
-    learner; behaviour cloning (no environment steps) as a dashed level."""
+    learner, a dot at 0 env steps marking its warm start's level (a learner of 0
+    iterations is that dot alone), ablations (``pomil.learners.ABLATIONS``) dashed;
+    behaviour cloning (no environment steps) as a dotted level."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from pomil.learners import ABLATIONS
+
     tasks = results["tasks"]
-    fig, axes = plt.subplots(1, len(tasks), figsize=(5.5 * len(tasks), 4), squeeze=False)
+    fig, axes = plt.subplots(1, len(tasks), figsize=(6.5 * len(tasks), 5), squeeze=False)
+    colours = COLOURS + ["tab:cyan", "tab:gray", "black", "gold"]
     for ax, task in zip(axes[0], tasks):
         for i, (name, r) in enumerate(results["learners"].items()):
-            colour = COLOURS[i % len(COLOURS)]
+            colour = colours[i % len(colours)]
             curves = [c for c in r["curves"] if c["env_steps"]]
             if curves:
                 n = min(len(c["env_steps"]) for c in curves)
                 x = np.asarray(curves[0]["env_steps"][:n])
                 y = np.asarray([c[task][:n] for c in curves])
                 mean, std = y.mean(0), y.std(0)
-                ax.plot(x, mean, color=colour, label=f"{name} ({len(curves)} seeds)")
-                ax.fill_between(x, mean - std, mean + std, color=colour, alpha=0.2)
+                ax.plot(x, mean, color=colour, linestyle="--" if name in ABLATIONS else "-", marker="o",
+                        markevery=[0], label=f"{name} ({len(curves)} seeds)")
+                ax.fill_between(x, mean - std, mean + std, color=colour, alpha=0.12)
             else:
                 level = r["summary"][task]["normalised_return"][0]
-                ax.axhline(level, color=colour, linestyle="--", label=f"{name} (final)")
+                ax.axhline(level, color=colour, linestyle=":", label=f"{name} (final)")
         ax.axhline(1.0, color="black", linewidth=0.8)
         ax.axhline(results["reference"]["still_returns"][task] / results["reference"]["expert_returns"][task],
                    color="grey", linestyle=":", linewidth=1, label="zero actions")
@@ -80,7 +95,6 @@ def learning_curves(results: dict, path: str | Path) -> None:
         ax.set_xlabel("environment steps")
         ax.set_ylabel("normalised return (code matched to task)")
         ax.grid(alpha=0.3)
-    axes[0][-1].legend(fontsize=8, loc="lower right")
+    axes[0][-1].legend(fontsize=7, loc="lower right", ncol=2)
     fig.tight_layout()
-    atomic_write(Path(path), lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
+    return fig

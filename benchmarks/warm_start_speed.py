@@ -1,0 +1,90 @@
+"""The warm start's time and fit, the earlier recipe against the defaults, in one run.
+
+For each demonstrations file, learner and seed, runs ``bc_warm_start`` (the adversarial
+learners' behaviour-cloning warm start, with its posterior steps) twice from the same
+initial networks:
+
+* ``3000 steps``: the warm start before issue 15 -- 3000 Adam steps at lr 1e-3, the log
+  std at the same rate, no decay, no closed-form fit;
+* ``defaults``: ``AdversarialConfig``'s warm start.
+
+and prints its wall time, the policy part's time, and the demonstrations' negative
+log-likelihood per step on *all* episodes at the end (the mixture likelihood of
+``mixture_bc_loss`` for learners with codes, the plain one for GAIL), with the ratios.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/warm_start_speed.py \
+        [--demos data/circles.npz,data/hopper-paper.npz] [--learners infogail-pomdp] [--seeds 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import torch
+
+from pomil.algos.adversarial import AdversarialConfig, bc_warm_start, build_modules, resolve_num_codes
+from pomil.algos.bc import _nll, episode_features, mixture_bc_loss
+from pomil.data import load_training_demos
+from pomil.envs import executed_actions_fn
+from pomil.nn.policy import shift_actions
+
+BEFORE = {"bc_init_iterations": 3000, "bc_init_lr": 1e-3, "bc_init_lr_decay": False,
+          "bc_init_log_std_lr_scale": 1.0, "bc_init_fit_log_std": False}
+
+
+@torch.no_grad()
+def demo_nll(policy, expert, prev, mixture: bool) -> float:
+    if mixture:
+        return mixture_bc_loss(policy, expert, prev)[0].item()
+    feats = episode_features(policy, expert.observations, prev, expert.mask)
+    return _nll(policy, policy.dist(feats), expert.actions, expert.mask)[0].item()
+
+
+def measure(demos_path: str, learner: str, seed: int, settings: dict) -> dict[str, float]:
+    cfg = replace(AdversarialConfig(demos=demos_path, learner=learner, seed=seed), **settings)
+    demos, env_id, env_kwargs = load_training_demos(demos_path)
+    num_codes = resolve_num_codes(cfg, demos)
+    torch.manual_seed(seed)
+    m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, "cpu")
+    expert = demos.padded("cpu")
+    expert = replace(expert, actions=executed_actions_fn(env_id, env_kwargs)(expert.actions))
+    prev = shift_actions(expert.actions)
+    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
+    gen = torch.Generator().manual_seed(seed)
+    t0 = time.perf_counter()
+    bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, posterior_init_iterations=0), gen)
+    policy_s = time.perf_counter() - t0
+    nll = demo_nll(m.policy, expert, prev, mixture)
+    t1 = time.perf_counter()
+    if mixture:  # the posterior's steps (the same in both recipes), timed on their own
+        bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, bc_init_iterations=0), gen)
+    return {"seconds": policy_s + time.perf_counter() - t1, "policy_s": policy_s, "nll": nll,
+            "log_std": m.policy.log_std.mean().item()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--demos", default="data/circles.npz,data/hopper-paper.npz")
+    ap.add_argument("--learners", default="infogail-pomdp")
+    ap.add_argument("--seeds", default="0")
+    args = ap.parse_args()
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} torch threads")
+    print(f"{'demonstrations':24s} {'learner':15s} {'seed':>4s} {'recipe':10s} {'s':>7s} {'policy s':>9s} "
+          f"{'NLL':>8s} {'log std':>8s}")
+    for demos in args.demos.split(","):
+        for learner in args.learners.split(","):
+            for seed in (int(s) for s in args.seeds.split(",")):
+                rows = {name: measure(demos, learner, seed, s) for name, s in (("3000 steps", BEFORE),
+                                                                               ("defaults", {}))}
+                for name, r in rows.items():
+                    print(f"{demos:24s} {learner:15s} {seed:4d} {name:10s} {r['seconds']:7.1f} {r['policy_s']:9.1f} "
+                          f"{r['nll']:8.3f} {r['log_std']:8.2f}")
+                a, b = rows["3000 steps"], rows["defaults"]
+                print(f"{'':24s} {'':15s} {'':4s} {'ratio':10s} {a['seconds'] / b['seconds']:6.1f}x "
+                      f"{a['policy_s'] / b['policy_s']:8.1f}x  NLL {b['nll'] - a['nll']:+.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
