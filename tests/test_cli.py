@@ -1,10 +1,14 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+import torch
 
+from pomil.api import TrainedPolicy
 from pomil.cli import build_parser, main
+from pomil.training import load_checkpoint
 
 
 def pomil(*args):
@@ -148,3 +152,38 @@ def test_mismatched_demonstrations_are_refused_by_train_plot_and_evaluate(demos_
     assert not (tmp_path / "no").exists() and not (tmp_path / "f.png").exists()
     assert main(["evaluate", str(run), "--demos", str(demos_path), "--episodes-per-code", "2"]) == 0
     assert "circles evaluation does not use it" in capsys.readouterr().err
+
+
+CIRCLES = Path(__file__).resolve().parents[1] / "data" / "circles.npz"
+TINY_ADVERSARIAL = ["--iterations", "1", "--num-envs", "4", "--hidden-size", "8", "--bc-init-iterations", "2",
+                    "--posterior-init-iterations", "1", "--critic-batch", "4", "--eval-every", "0", "--no-progress"]
+
+
+@pytest.mark.parametrize("encoder", ["lstm", "attention"])
+def test_infogail_pomdp_trains_with_each_belief_encoder_and_its_policy_loads_and_acts(encoder, tmp_path):
+    out = tmp_path / encoder
+    assert main(["train", "infogail-pomdp", "--belief-encoder", encoder, "--attention-context", "5",
+                 "--demos", str(CIRCLES), "--out", str(out), *TINY_ADVERSARIAL]) == 0
+    assert json.loads((out / "config.json").read_text())["belief_encoder"] == encoder
+    policy = TrainedPolicy.load(out / "checkpoint.pt")
+    assert policy.policy.arch.encoder == encoder
+    assert policy.policy.arch.to_dict().get("context", 5) == 5
+    policy.reset(3, [0, 1, 0], seed=0)
+    for _ in range(3):
+        assert policy.act([[0.1, 0.2]] * 3).shape == (3, 2)
+    assert main(["evaluate", str(out), "--episodes-per-code", "2"]) == 0
+
+
+@pytest.mark.parametrize("encoder", ["lstm", "attention"])
+def test_bc_trains_each_encoder_and_the_checkpoint_rebuilds_the_same_policy(encoder, tmp_path):
+    out = tmp_path / encoder
+    assert main(["train", "bc", "--policy", encoder, "--attention-context", "3", "--demos", str(CIRCLES),
+                 "--out", str(out), "--iterations", "2", "--hidden-size", "8", "--no-progress"]) == 0
+    ckpt = load_checkpoint(out / "checkpoint.pt")
+    policy = TrainedPolicy.load(out / "checkpoint.pt")
+    assert policy.policy.arch.encoder == encoder
+    assert policy.policy.arch.context == 3 or encoder != "attention"
+    for k, v in ckpt["policy"].items():
+        assert torch.equal(policy.policy.state_dict()[k], v)
+    policy.reset(2, seed=0)
+    assert policy.act([[0.0, 0.0], [1.0, -1.0]], deterministic=True).shape == (2, 2)

@@ -65,7 +65,7 @@ def _bc(name: str, text: str, **fixed: Any) -> Learner:
 
 
 LEARNERS: dict[str, Learner] = {learner.name: learner for learner in (
-    _bc("bc", "behaviour cloning (feed-forward or GRU policy)"),
+    _bc("bc", "behaviour cloning (feed-forward, GRU, LSTM or attention policy)"),
     _bc("bc-mlp", "behaviour cloning with a feed-forward policy (current observation only)", policy="mlp"),
     _bc("bc-gru", "behaviour cloning with a GRU policy (belief over the history)", policy="gru"),
     _adversarial("gail", "GAIL: MLP networks, no codes, GAN discriminator"),

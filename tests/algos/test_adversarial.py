@@ -337,3 +337,25 @@ def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
 def test_rollout_threads_must_not_be_negative(demos_path, tmp_path):
     with pytest.raises(ValueError, match="rollout_threads"):
         _cfg(demos_path, tmp_path / "bad", rollout_threads=-1)
+
+
+@pytest.mark.parametrize("belief_encoder", ["gru", "lstm", "attention"])
+def test_belief_encoder_goes_to_every_recurrent_network_and_only_there(belief_encoder):
+    from dataclasses import replace
+
+    from pomil.nn.encoders import AttentionEncoder, BeliefEncoder, LSTMEncoder, MLPEncoder
+
+    kind = {"gru": BeliefEncoder, "lstm": LSTMEncoder, "attention": AttentionEncoder}[belief_encoder]
+    cfg = AdversarialConfig(learner="infogail-pomdp", belief_encoder=belief_encoder, attention_context=5,
+                            hidden_size=8)
+    m, arch = build_modules(cfg, 2, 2, 3, "cpu")
+    assert arch.encoder == belief_encoder and arch.context == 5
+    assert all(type(net.encoder) is kind for net in (m.policy, m.value, m.critic, m.posterior))
+    if belief_encoder == "attention":
+        assert {net.encoder.context for net in (m.policy, m.value, m.critic, m.posterior)} == {5}
+    m, _ = build_modules(replace(cfg, belief="policy"), 2, 2, 3, "cpu")  # the ablation keeps feed-forward heads
+    assert type(m.policy.encoder) is kind
+    assert all(type(net.encoder) is MLPEncoder for net in (m.value, m.critic, m.posterior))
+    for learner in ("gail", "infogail"):  # feed-forward learners whatever the option says
+        m, arch = build_modules(replace(cfg, learner=learner), 2, 2, 3 if learner == "infogail" else 0, "cpu")
+        assert arch.encoder == "mlp" and type(m.critic.encoder) is MLPEncoder

@@ -25,8 +25,9 @@ Per iteration:
    The critic and posterior train with the same mode.
 
 Learners: ``gail`` (MLP, no codes, GAN critic), ``infogail`` (MLP, codes,
-Wasserstein), ``infogail-pomdp`` (separate GRU belief encoders for policy,
-value, critic and posterior; codes; Wasserstein).
+Wasserstein), ``infogail-pomdp`` (separate belief encoders for policy,
+value, critic and posterior: GRU, or LSTM or attention by ``belief_encoder``;
+codes; Wasserstein).
 """
 
 from __future__ import annotations
@@ -60,10 +61,10 @@ from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import DivergenceGuard, RunLoop, lr_hint
 
-LEARNER_KINDS = {  # what each learner is made of
-    "gail": {"encoder": "mlp", "codes": False, "critic_objective": "gan"},
-    "infogail": {"encoder": "mlp", "codes": True, "critic_objective": "wasserstein"},
-    "infogail-pomdp": {"encoder": "gru", "codes": True, "critic_objective": "wasserstein"},
+LEARNER_KINDS = {  # what each learner is made of (recurrent: belief encoders of kind ``belief_encoder``, else MLPs)
+    "gail": {"recurrent": False, "codes": False, "critic_objective": "gan"},
+    "infogail": {"recurrent": False, "codes": True, "critic_objective": "wasserstein"},
+    "infogail-pomdp": {"recurrent": True, "codes": True, "critic_objective": "wasserstein"},
 }
 
 
@@ -107,7 +108,14 @@ class AdversarialConfig(RunConfig):
                             "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by "
                             "gail)",
                             within="[-1, inf)")
-    hidden_size: int = option(128, "dense width and GRU cells of every network", within="[1, inf)")
+    hidden_size: int = option(128, "dense width and recurrent cells (attention: model width) of every network",
+                              within="[1, inf)")
+    belief_encoder: Literal["gru", "lstm", "attention"] = option(
+        "gru", "infogail-pomdp's belief encoder over (z_t, a_{t-1}) in policy, value, critic and posterior: gru (the "
+               "paper), lstm, or attention (a one-layer causal transformer over the last attention_context steps); "
+               "ignored by gail and infogail (feed-forward)")
+    attention_context: int = option(32, "with belief_encoder attention: steps it attends to, the current one included",
+                                    within="[1, inf)")
     lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
     shared_value_encoder: bool = option(False,
@@ -409,18 +417,19 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
 # ---------------------------------------------------------------------- train
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
                   device: torch.device | str) -> tuple[Modules, PolicyArch]:
-    enc = LEARNER_KINDS[cfg.learner]["encoder"]
-    arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean)
+    enc = cfg.belief_encoder if LEARNER_KINDS[cfg.learner]["recurrent"] else "mlp"
+    ctx = cfg.attention_context
+    arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean, ctx)
     policy = GaussianPolicy(arch).to(device)
     heads_enc = "mlp" if cfg.belief == "policy" else enc
-    value = heads.value(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size).to(device)
+    value = heads.value(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx).to(device)
     if cfg.shared_value_encoder or cfg.belief == "shared":
         value.encoder = policy.encoder  # one module: the value loss also trains the policy's encoder
     m = Modules(
         policy=policy,
         value=value,
-        critic=heads.critic(obs_dim, act_dim, heads_enc, cfg.hidden_size).to(device),
-        posterior=(heads.posterior(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size).to(device)
+        critic=heads.critic(obs_dim, act_dim, heads_enc, cfg.hidden_size, ctx).to(device),
+        posterior=(heads.posterior(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx).to(device)
                    if num_codes else None),
     )
     if cfg.belief == "shared":  # one belief b_t for all four; each loss's own optimiser steps it

@@ -30,8 +30,12 @@ from pomil.training import RunLoop, lr_hint
 @dataclass(frozen=True)
 class BCConfig(RunConfig):
     out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    policy: Literal["mlp", "gru"] = option("gru", "mlp: current observation only; gru: belief over the history")
-    hidden_size: int = option(128, "width of the dense layers and GRU cells", within="[1, inf)")
+    policy: Literal["mlp", "gru", "lstm", "attention"] = option(
+        "gru", "mlp: current observation only; gru, lstm or attention (a one-layer causal transformer over the last "
+               "attention_context steps): belief over the history")
+    hidden_size: int = option(128, "width of the dense layers and recurrent cells", within="[1, inf)")
+    attention_context: int = option(32, "with policy attention: steps it attends to, the current one included",
+                                    within="[1, inf)")
     iterations: int = option(500, "gradient steps", within="[1, inf)")
     batch_episodes: int = option(64, "whole episodes per minibatch", within="[1, inf)")
     lr: float = option(1e-3, "Adam learning rate", within="(0, inf)")
@@ -241,7 +245,8 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
         demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs),
                                                         parse_mask(config.observation_mask))
         generator = loop.seed()
-        arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init)
+        arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init,
+                          context=config.attention_context)
         policy = GaussianPolicy(arch).to(loop.device)
         optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
         if config.batch_episodes > demos.num_episodes:

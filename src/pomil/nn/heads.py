@@ -1,8 +1,9 @@
 """Critic, posterior and value networks, each with its own encoder.
 
-Each is a :class:`BeliefHead`: an encoder (feed-forward or GRU belief over
-(z_t, a_{t-1})) followed by an MLP over [features, extra], where ``extra`` is
-the current action a_t (critic, posterior) or the one-hot code (value).
+Each is a :class:`BeliefHead`: an encoder (feed-forward, or a GRU, LSTM or
+attention belief over (z_t, a_{t-1}), see ``pomil.nn.encoders``) followed by
+an MLP over [features, extra], where ``extra`` is the current action a_t
+(critic, posterior) or the one-hot code (value).
 Separate encoders per module are the paper's design: b(tau; omega) for the
 critic, b(tau; psi) for the posterior.
 """
@@ -17,9 +18,9 @@ from pomil.nn.encoders import make_encoder
 
 class BeliefHead(nn.Module):
     def __init__(self, obs_dim: int, act_dim: int, extra_dim: int, out_dim: int, encoder: str = "gru",
-                 hidden_size: int = 128) -> None:
+                 hidden_size: int = 128, context: int = 32) -> None:
         super().__init__()
-        self.encoder = make_encoder(encoder, obs_dim, act_dim, hidden_size)
+        self.encoder = make_encoder(encoder, obs_dim, act_dim, hidden_size, context)
         self.out_dim = out_dim
         self.mlp = nn.Sequential(
             nn.Linear(self.encoder.out_size + extra_dim, hidden_size), nn.ELU(), nn.Linear(hidden_size, out_dim)
@@ -43,16 +44,19 @@ class BeliefHead(nn.Module):
         return self._out(feats, extra), h
 
 
-def critic(obs_dim: int, act_dim: int, encoder: str = "gru", hidden_size: int = 128) -> BeliefHead:
+def critic(obs_dim: int, act_dim: int, encoder: str = "gru", hidden_size: int = 128,
+           context: int = 32) -> BeliefHead:
     """Scores f(b(tau; omega), a_t): higher = more expert-like."""
-    return BeliefHead(obs_dim, act_dim, act_dim, 1, encoder, hidden_size)
+    return BeliefHead(obs_dim, act_dim, act_dim, 1, encoder, hidden_size, context)
 
 
-def posterior(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128) -> BeliefHead:
+def posterior(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128,
+              context: int = 32) -> BeliefHead:
     """Logits of P(c | b(tau; psi), a_t)."""
-    return BeliefHead(obs_dim, act_dim, act_dim, num_codes, encoder, hidden_size)
+    return BeliefHead(obs_dim, act_dim, act_dim, num_codes, encoder, hidden_size, context)
 
 
-def value(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128) -> BeliefHead:
+def value(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128,
+          context: int = 32) -> BeliefHead:
     """V(b(tau), c)."""
-    return BeliefHead(obs_dim, act_dim, num_codes, 1, encoder, hidden_size)
+    return BeliefHead(obs_dim, act_dim, num_codes, 1, encoder, hidden_size, context)

@@ -20,7 +20,10 @@ from pomil.nn.encoders import make_encoder
 
 @dataclass(frozen=True)
 class PolicyArch:
-    """What it takes to rebuild a policy from its state dict."""
+    """What it takes to rebuild a policy from its state dict.
+
+    ``encoder``: one of ``pomil.nn.encoders.ENCODERS``; ``context``: the attention
+    encoder's window in steps (ignored by the others)."""
 
     obs_dim: int
     act_dim: int
@@ -29,16 +32,22 @@ class PolicyArch:
     num_codes: int = 0
     log_std_init: float = -1.0
     tanh_mean: bool = False
+    context: int = 32
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """The fields, ``context`` only for the attention encoder (so that other policies' checkpoints
+        are as before it existed; a checkpoint without it loads with the default)."""
+        d = asdict(self)
+        if self.encoder != "attention":
+            del d["context"]
+        return d
 
 
 class GaussianPolicy(nn.Module):
     def __init__(self, arch: PolicyArch) -> None:
         super().__init__()
         self.arch = arch
-        self.encoder = make_encoder(arch.encoder, arch.obs_dim, arch.act_dim, arch.hidden_size)
+        self.encoder = make_encoder(arch.encoder, arch.obs_dim, arch.act_dim, arch.hidden_size, arch.context)
         feat = self.encoder.out_size
         self.code_embed = nn.Linear(arch.num_codes, feat, bias=False) if arch.num_codes > 0 else None
         self.mean = nn.Sequential(nn.Linear(feat, arch.hidden_size), nn.ELU(),
