@@ -187,3 +187,31 @@ def test_bc_trains_each_encoder_and_the_checkpoint_rebuilds_the_same_policy(enco
         assert torch.equal(policy.policy.state_dict()[k], v)
     policy.reset(2, seed=0)
     assert policy.act([[0.0, 0.0], [1.0, -1.0]], deterministic=True).shape == (2, 2)
+
+
+def test_bc_with_the_observation_change_and_no_previous_action_round_trips(tmp_path):
+    out = tmp_path / "delta"
+    assert main(["train", "bc", "--policy", "gru", "--obs-delta", "--no-prev-action", "--demos", str(CIRCLES),
+                 "--out", str(out), "--iterations", "2", "--hidden-size", "8", "--no-progress"]) == 0
+    ckpt = load_checkpoint(out / "checkpoint.pt")
+    scale = ckpt["policy"]["encoder.delta_scale"]
+    assert scale.shape == (2,) and bool((scale > 1).all())  # the circles move ~0.1-0.2 a step: 1 / std > 1
+    policy = TrainedPolicy.load(out / "checkpoint.pt")
+    assert (policy.policy.arch.obs_delta, policy.policy.arch.prev_action) == (True, False)
+    assert torch.equal(policy.policy.encoder.delta_scale, scale)
+    policy.reset(2, seed=0)
+    assert policy.act([[0.0, 0.0], [1.0, -1.0]], deterministic=True).shape == (2, 2)
+
+
+def test_infogail_pomdp_with_the_policys_input_view_trains_resumes_and_loads(tmp_path):
+    out = tmp_path / "view"
+    flags = ["--policy-obs-delta", "--no-policy-prev-action", "--demos", str(CIRCLES), "--out", str(out)]
+    assert main(["train", "infogail-pomdp", *flags, *TINY_ADVERSARIAL]) == 0
+    written = json.loads((out / "config.json").read_text())
+    assert (written["policy_obs_delta"], written["policy_prev_action"]) == (True, False)
+    policy = TrainedPolicy.load(out / "checkpoint.pt")
+    assert (policy.policy.arch.obs_delta, policy.policy.arch.prev_action) == (True, False)
+    policy.reset(2, [0, 1], seed=0)
+    assert policy.act([[0.1, 0.2]] * 2).shape == (2, 2)
+    assert main(["train", "infogail-pomdp", *flags, *TINY_ADVERSARIAL, "--iterations", "2", "--resume"]) == 0
+    assert load_checkpoint(out / "checkpoint.pt")["iteration"] == 2

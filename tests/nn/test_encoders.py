@@ -177,3 +177,73 @@ def test_policy_arch_records_the_context_for_attention_only():
     assert arch.to_dict()["context"] == 7
     assert PolicyArch(**arch.to_dict()) == arch
     assert GaussianPolicy(PolicyArch(**arch.to_dict())).encoder.context == 7
+
+
+class _Echo(torch.nn.Module):
+    """An inner encoder whose features are its inputs [x, a] (and that keeps no state)."""
+
+    out_size = 2 * OBS + ACT
+
+    def initial_state(self, n, device=None):
+        return torch.zeros(n, 0, device=device)
+
+    def step(self, x, a, h, start):
+        return torch.cat([x, a], -1), h
+
+    def unroll(self, x, a, h0, starts):
+        return torch.cat([x, a], -1), h0
+
+
+def test_input_view_sees_the_scaled_observation_change_and_zeros_for_the_previous_action():
+    from pomil.nn.encoders import InputView
+
+    view = InputView(_Echo(), OBS, obs_delta=True, prev_action=False)
+    view.delta_scale.copy_(torch.tensor([1.0, 2.0, 10.0]))
+    obs = torch.tensor([[[1.0, 1.0, 1.0]], [[2.0, 0.0, 1.5]], [[4.0, 0.0, 1.0]], [[0.0, 0.0, 0.0]]])  # (T 4, N 1, 3)
+    starts = torch.tensor([[False], [False], [False], [True]])
+    h0 = torch.tensor([[0.5, 1.0, 1.0]])  # the observation before this block
+    feats, h = view.unroll(obs, torch.ones(4, 1, ACT), h0, starts)
+    torch.testing.assert_close(feats[:, 0, OBS:2 * OBS], torch.tensor(
+        [[0.5, 0.0, 0.0], [1.0, -2.0, 5.0], [2.0, 0.0, -5.0], [0.0, 0.0, 0.0]]))  # no change across a start
+    assert not feats[..., 2 * OBS:].any()  # a_{t-1} replaced by zeros
+    torch.testing.assert_close(h, obs[-1])
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru", "attention"])
+def test_input_view_unroll_matches_repeated_steps_with_mid_block_starts_and_a_carried_state(kind):
+    torch.manual_seed(0)
+    enc = make_encoder(kind, OBS, ACT, 8, 4, obs_delta=True, prev_action=False)
+    enc.delta_scale.copy_(torch.tensor([3.0, 0.5, 2.0]))
+    N = 5
+    h0 = _carried_state(enc, N, 1)
+    assert h0.shape == (N, enc.inner.initial_state(N).shape[1] + OBS)
+    obs, prev, starts = _block(30, N, 2)
+    feats, h_last = enc.unroll(obs, prev, h0, starts)
+    h = h0
+    for t in range(30):
+        f, h = enc.step(obs[t], prev[t], h, starts[t])
+        torch.testing.assert_close(f, feats[t], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(h, h_last, atol=1e-5, rtol=1e-5)
+    # the previous action is not seen at all: any other actions give the same features
+    torch.testing.assert_close(enc.unroll(obs, torch.randn_like(prev), h0, starts)[0], feats)
+
+
+def test_fit_input_scale_is_one_over_the_std_of_the_in_episode_changes():
+    from pomil.nn.encoders import fit_input_scale
+
+    enc = make_encoder("gru", 1, ACT, 8, obs_delta=True)
+    obs = torch.tensor([[0.0, 5.0], [1.0, 5.0], [3.0, 100.0]]).unsqueeze(-1)  # (T 3, E 2, 1)
+    mask = torch.tensor([[True, True], [True, True], [True, False]])  # episode 1 ends after step 1
+    fit_input_scale(enc, obs, mask)
+    changes = torch.tensor([1.0, 2.0, 0.0])  # episode 0: 1, 2; episode 1: 0 (its padded step does not count)
+    torch.testing.assert_close(enc.delta_scale, 1 / changes.std().reshape(1))
+    plain = make_encoder("gru", 1, ACT, 8)
+    fit_input_scale(plain, obs, mask)  # no view: nothing to set
+    assert not hasattr(plain, "delta_scale")
+
+
+def test_policy_arch_records_the_input_view_only_when_it_is_not_the_default():
+    assert "obs_delta" not in PolicyArch(3, 2).to_dict() and "prev_action" not in PolicyArch(3, 2).to_dict()
+    arch = PolicyArch(3, 2, obs_delta=True, prev_action=False)
+    assert arch.to_dict()["obs_delta"] is True and arch.to_dict()["prev_action"] is False
+    assert PolicyArch(**arch.to_dict()) == arch

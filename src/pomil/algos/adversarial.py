@@ -49,6 +49,7 @@ from pomil.algos.bc import (MixtureAssignment, bc_step, demo_batch, demo_nll, fi
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
+from pomil.nn.encoders import fit_input_scale
 from pomil.envs import SIM_HELP, default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import ConfigError, PomilError
@@ -116,6 +117,14 @@ class AdversarialConfig(RunConfig):
                "ignored by gail and infogail (feed-forward)")
     attention_context: int = option(32, "with belief_encoder attention: steps it attends to, the current one included",
                                     within="[1, inf)")
+    policy_obs_delta: bool = option(False,
+                                    "the policy (not critic, value or posterior) also sees each observation's change "
+                                    "since the previous step, scaled by the demonstrations' std of it (a "
+                                    "finite-difference velocity for positions-only observations)")
+    policy_prev_action: bool = option(True,
+                                      "the policy's encoder sees the previous action a_{t-1} (the paper's belief); "
+                                      "false: zeros in its place, against the copycat problem of cloning "
+                                      "deterministic demonstrations (docs/hopper.md)")
     lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
     shared_value_encoder: bool = option(False,
@@ -419,7 +428,8 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes:
                   device: torch.device | str) -> tuple[Modules, PolicyArch]:
     enc = cfg.belief_encoder if LEARNER_KINDS[cfg.learner]["recurrent"] else "mlp"
     ctx = cfg.attention_context
-    arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean, ctx)
+    arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean, ctx,
+                      cfg.policy_obs_delta, cfg.policy_prev_action)
     policy = GaussianPolicy(arch).to(device)
     heads_enc = "mlp" if cfg.belief == "policy" else enc
     value = heads.value(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx).to(device)
@@ -662,6 +672,8 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         num_codes = resolve_num_codes(cfg, demos)
         gen = loop.seed()
         m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, loop.device)
+        expert = demos.padded(loop.device)
+        fit_input_scale(m.policy.encoder, expert.observations, expert.mask)
         opt = build_optimizers(cfg, m)
         if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
             print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch "
@@ -669,7 +681,6 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
         if not loop.start(env=env_info, nets=nets, optimizers=opt):
             return loop.ckpt_path
-        expert = demos.padded(loop.device)
         expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
         run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
                              shift_actions(expert.actions), execute, num_codes, loop.guard)

@@ -23,6 +23,7 @@ from pomil.data import PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
+from pomil.nn.encoders import fit_input_scale
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import RunLoop, lr_hint
 
@@ -36,6 +37,12 @@ class BCConfig(RunConfig):
     hidden_size: int = option(128, "width of the dense layers and recurrent cells", within="[1, inf)")
     attention_context: int = option(32, "with policy attention: steps it attends to, the current one included",
                                     within="[1, inf)")
+    obs_delta: bool = option(False, "the policy also sees each observation's change since the previous step, scaled "
+                                    "by the demonstrations' std of it (a finite-difference velocity for positions-only "
+                                    "observations)")
+    prev_action: bool = option(True, "the policy's encoder sees the previous action a_{t-1} (the paper's belief); "
+                                     "false: zeros in its place, against the copycat problem of cloning deterministic "
+                                     "demonstrations (docs/hopper.md)")
     iterations: int = option(500, "gradient steps", within="[1, inf)")
     batch_episodes: int = option(64, "whole episodes per minibatch", within="[1, inf)")
     lr: float = option(1e-3, "Adam learning rate", within="(0, inf)")
@@ -246,8 +253,10 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
                                                         parse_mask(config.observation_mask))
         generator = loop.seed()
         arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init,
-                          context=config.attention_context)
+                          context=config.attention_context, obs_delta=config.obs_delta, prev_action=config.prev_action)
         policy = GaussianPolicy(arch).to(loop.device)
+        data = demos.padded(loop.device)
+        fit_input_scale(policy.encoder, data.observations, data.mask)
         optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
         if config.batch_episodes > demos.num_episodes:
             print(f"pomil: note: batch_episodes {config.batch_episodes} is more than the {demos.num_episodes} "
@@ -255,7 +264,6 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
         env = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
         if not loop.start(env=env, nets={"policy": policy}, optimizers={"policy": optimizer}, env_steps=False):
             return loop.ckpt_path
-        data = demos.padded(loop.device)
         prev_all = shift_actions(executed_actions_fn(env_id, env_kwargs)(data.actions))
 
         def update(iteration: int) -> dict[str, float]:

@@ -222,8 +222,77 @@ class AttentionEncoder(nn.Module):
         return torch.cat(feats, dim=1).transpose(0, 1), self._pack(k[:, :, T:], v[:, :, T:], valid_end)
 
 
-def make_encoder(kind: str, obs_dim: int, act_dim: int, hidden_size: int, context: int = 32) -> nn.Module:
-    """The encoder called ``kind`` (one of :data:`ENCODERS`); ``context`` is the attention encoder's window."""
+class InputView(nn.Module):
+    """Another encoder (``inner``) fed a chosen view of each step.
+
+    * ``obs_delta``: the observation gains its change since the previous step,
+      (z_t - z_{t-1}) * ``delta_scale`` (zero at an episode's first step), so that a
+      positions-only observation carries its finite-difference velocity.  The previous
+      observation is part of the state: [inner state, z_{t-1}].  ``delta_scale`` is a
+      buffer (saved with the policy), 1 until a trainer sets it from the
+      demonstrations (:func:`fit_input_scale`).
+    * ``prev_action = False``: a_{t-1} is replaced by zeros.  Behaviour cloning from
+      deterministic demonstrations with a_{t-1} in the input learns to repeat the
+      previous action (the "copycat" problem), which then compounds its own errors.
+    """
+
+    def __init__(self, inner: nn.Module, obs_dim: int, obs_delta: bool, prev_action: bool) -> None:
+        super().__init__()
+        self.inner, self.obs_dim, self.obs_delta, self.prev_action = inner, obs_dim, obs_delta, prev_action
+        self.out_size = inner.out_size
+        self.register_buffer("delta_scale", torch.ones(obs_dim))
+
+    def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
+        h = self.inner.initial_state(batch, device)
+        return torch.cat([h, torch.zeros(batch, self.obs_dim if self.obs_delta else 0, device=device)], dim=-1)
+
+    def _split(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        n = h.shape[-1] - (self.obs_dim if self.obs_delta else 0)
+        return h[..., :n], h[..., n:]
+
+    def _view(self, obs, prev_actions, last_obs, starts):
+        """(observations as the inner encoder sees them, previous actions); obs (..., N, D) with
+        ``last_obs`` the observation before the first of them."""
+        if self.obs_delta:
+            before = torch.cat([last_obs.unsqueeze(0), obs[:-1]], dim=0) if obs.ndim == 3 else last_obs
+            delta = (obs - before) * (~starts).unsqueeze(-1).to(obs.dtype) * self.delta_scale
+            obs = torch.cat([obs, delta], dim=-1)
+        return obs, prev_actions if self.prev_action else torch.zeros_like(prev_actions)
+
+    def step(self, obs, prev_action, h, start):
+        inner_h, last = self._split(h)
+        x, a = self._view(obs, prev_action, last, start)
+        feats, inner_h = self.inner.step(x, a, inner_h, start)
+        return feats, torch.cat([inner_h, obs if self.obs_delta else last], dim=-1)
+
+    def unroll(self, obs, prev_actions, h0, starts):
+        inner_h, last = self._split(h0)
+        x, a = self._view(obs, prev_actions, last, starts)
+        feats, inner_h = self.inner.unroll(x, a, inner_h, starts)
+        return feats, torch.cat([inner_h, obs[-1] if self.obs_delta else last], dim=-1)
+
+
+@torch.no_grad()
+def fit_input_scale(encoder: nn.Module, observations: torch.Tensor, mask: torch.Tensor) -> None:
+    """With an ``obs_delta`` :class:`InputView`, set ``delta_scale`` to 1 / the std of the
+    demonstrations' step-to-step observation changes (time-major (T, E, D) episodes from their
+    first step, ``mask`` (T, E)), so that the change is about as large as the observation;
+    any other encoder is left as it is."""
+    if not (isinstance(encoder, InputView) and encoder.obs_delta):
+        return
+    both = mask[1:] & mask[:-1]
+    delta = (observations[1:] - observations[:-1])[both]
+    std = delta.std(0) if len(delta) > 1 else torch.ones_like(encoder.delta_scale)
+    encoder.delta_scale.copy_(1.0 / std.clamp_min(1e-6))
+
+
+def make_encoder(kind: str, obs_dim: int, act_dim: int, hidden_size: int, context: int = 32,
+                 obs_delta: bool = False, prev_action: bool = True) -> nn.Module:
+    """The encoder called ``kind`` (one of :data:`ENCODERS`); ``context`` is the attention encoder's window;
+    ``obs_delta`` / ``prev_action = False``: seen through an :class:`InputView` (else the encoder itself)."""
+    if obs_delta or not prev_action:
+        inner = make_encoder(kind, obs_dim * (2 if obs_delta else 1), act_dim, hidden_size, context)
+        return InputView(inner, obs_dim, obs_delta, prev_action)
     if kind == "mlp":
         return MLPEncoder(obs_dim, act_dim, hidden_size)
     if kind == "gru":

@@ -23,7 +23,8 @@ class PolicyArch:
     """What it takes to rebuild a policy from its state dict.
 
     ``encoder``: one of ``pomil.nn.encoders.ENCODERS``; ``context``: the attention
-    encoder's window in steps (ignored by the others)."""
+    encoder's window in steps (ignored by the others); ``obs_delta`` and
+    ``prev_action``: what the encoder sees of each step (``pomil.nn.encoders.InputView``)."""
 
     obs_dim: int
     act_dim: int
@@ -33,13 +34,19 @@ class PolicyArch:
     log_std_init: float = -1.0
     tanh_mean: bool = False
     context: int = 32
+    obs_delta: bool = False
+    prev_action: bool = True
 
     def to_dict(self) -> dict[str, Any]:
-        """The fields, ``context`` only for the attention encoder (so that other policies' checkpoints
-        are as before it existed; a checkpoint without it loads with the default)."""
+        """The fields; ``context`` only for the attention encoder, ``obs_delta`` and ``prev_action``
+        only when not their defaults (so that other policies' checkpoints are as before these
+        existed; a checkpoint without them loads with the defaults)."""
         d = asdict(self)
         if self.encoder != "attention":
             del d["context"]
+        for key, default in (("obs_delta", False), ("prev_action", True)):
+            if d[key] == default:
+                del d[key]
         return d
 
 
@@ -47,7 +54,8 @@ class GaussianPolicy(nn.Module):
     def __init__(self, arch: PolicyArch) -> None:
         super().__init__()
         self.arch = arch
-        self.encoder = make_encoder(arch.encoder, arch.obs_dim, arch.act_dim, arch.hidden_size, arch.context)
+        self.encoder = make_encoder(arch.encoder, arch.obs_dim, arch.act_dim, arch.hidden_size, arch.context,
+                                    arch.obs_delta, arch.prev_action)
         feat = self.encoder.out_size
         self.code_embed = nn.Linear(arch.num_codes, feat, bias=False) if arch.num_codes > 0 else None
         self.mean = nn.Sequential(nn.Linear(feat, arch.hidden_size), nn.ELU(),
