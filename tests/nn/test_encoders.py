@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from pomil.nn.encoders import ENCODERS, AttentionEncoder, make_encoder
-from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+from pomil.nn.policy import GaussianPolicy, PolicyArch
 
 OBS, ACT = 3, 2
 RECURRENT = [("gru", 32), ("lstm", 32), ("attention", 1), ("attention", 4), ("attention", 32)]
@@ -151,23 +151,6 @@ def test_attention_heads_divide_the_width():
 def test_unknown_encoder_names_the_choices():
     with pytest.raises(ValueError, match="'mlp', 'gru', 'lstm', 'attention'"):
         make_encoder("transformer", 2, 2, 8)
-
-
-@pytest.mark.parametrize("kind", ["lstm", "attention"])
-def test_policy_with_each_encoder_steps_as_it_unrolls(kind):
-    torch.manual_seed(0)
-    pol = GaussianPolicy(PolicyArch(2, 2, kind, 16, num_codes=3, context=4))
-    T, N = 12, 4
-    obs, act = torch.randn(T, N, 2), torch.randn(T, N, 2)
-    codes = torch.nn.functional.one_hot(torch.tensor([0, 1, 2, 1]), 3).float()
-    starts = torch.zeros(T, N, dtype=torch.bool)
-    starts[0] = True
-    dist, _ = pol.unroll(obs, shift_actions(act), pol.initial_state(N), starts, codes)
-    h, prev = pol.initial_state(N), torch.zeros(N, 2)
-    for t in range(T):
-        d, h = pol.step(obs[t], prev, h, starts[t], codes)
-        torch.testing.assert_close(d.mean, dist.mean[t], atol=1e-5, rtol=1e-5)
-        prev = act[t]
 
 
 def test_policy_arch_records_the_context_for_attention_only():

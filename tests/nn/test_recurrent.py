@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from pomil.nn.encoders import BeliefEncoder
@@ -53,18 +54,19 @@ def test_belief_encoder_ignores_previous_action_at_episode_start():
     torch.testing.assert_close(a, b)
 
 
-def test_policy_step_and_unroll_agree():
+@pytest.mark.parametrize("encoder, view", [("mlp", {}), ("gru", {}), ("lstm", {}), ("attention", {}),
+                                           ("gru", {"obs_delta": True, "prev_action": False})])
+def test_policy_step_and_unroll_agree(encoder, view):
     torch.manual_seed(0)
-    for encoder in ("mlp", "gru"):
-        pol = GaussianPolicy(PolicyArch(2, 2, encoder, 16, num_codes=3))
-        T, N = 12, 4
-        obs, act = torch.randn(T, N, 2), torch.randn(T, N, 2)
-        codes = torch.nn.functional.one_hot(torch.tensor([0, 1, 2, 1]), 3).float()
-        starts = torch.zeros(T, N, dtype=torch.bool)
-        starts[0] = True
-        dist, _ = pol.unroll(obs, shift_actions(act), pol.initial_state(N), starts, codes)
-        h, prev = pol.initial_state(N), torch.zeros(N, 2)
-        for t in range(T):
-            d, h = pol.step(obs[t], prev, h, starts[t], codes)
-            torch.testing.assert_close(d.mean, dist.mean[t], atol=1e-5, rtol=1e-5)
-            prev = act[t]
+    pol = GaussianPolicy(PolicyArch(2, 2, encoder, 16, num_codes=3, context=4, **view))
+    T, N = 12, 4
+    obs, act = torch.randn(T, N, 2), torch.randn(T, N, 2)
+    codes = torch.nn.functional.one_hot(torch.tensor([0, 1, 2, 1]), 3).float()
+    starts = torch.zeros(T, N, dtype=torch.bool)
+    starts[0] = True
+    dist, _ = pol.unroll(obs, shift_actions(act), pol.initial_state(N), starts, codes)
+    h, prev = pol.initial_state(N), torch.zeros(N, 2)
+    for t in range(T):
+        d, h = pol.step(obs[t], prev, h, starts[t], codes)
+        torch.testing.assert_close(d.mean, dist.mean[t], atol=1e-5, rtol=1e-5)
+        prev = act[t]
