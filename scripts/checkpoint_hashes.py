@@ -82,8 +82,7 @@ def tiny_runs(out: Path) -> dict[str, tuple[str, Any]]:
         "circles-paper-text-window": ("infogail-pomdp", AdversarialConfig(
             learner="infogail-pomdp", demos=circles, out=str(out / "w"), eval_every=0, critic_optimizer="rmsprop",
             weight_clip=0.01, gradient_penalty=0.0, update_mode="window", bc_init_codes="random", bc_weight=0.0,
-            policy_warmup_iterations=0, expert_action_noise=True, bc_init_lr=1e-3, bc_init_lr_decay=False,
-            bc_init_log_std_lr_scale=1.0, bc_init_fit_log_std=False, **tiny)),  # the paper-text preset's warm start
+            policy_warmup_iterations=0, expert_action_noise=True, **tiny)),
         "circles-gail": ("gail", AdversarialConfig(
             learner="gail", demos=circles, out=str(out / "g"), eval_every=0, policy_warmup_iterations=1, **tiny)),
         "hopper-infogail-pomdp": ("infogail-pomdp", AdversarialConfig(

@@ -19,9 +19,9 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     cfg = AdversarialConfig()
     assert (cfg.critic_optimizer, cfg.gradient_penalty, cfg.weight_clip, cfg.lr_critic) == ("adam", 10.0, 0.0, 5e-4)
     assert (cfg.bc_init_codes, cfg.bc_init_iterations, cfg.bc_weight, cfg.lr, cfg.policy_warmup_iterations) == (
-        "mixture", 600, 10.0, 5e-5, 5)
+        "mixture", 3000, 10.0, 5e-5, 5)
     assert (cfg.bc_init_lr, cfg.bc_init_lr_decay, cfg.bc_init_log_std_lr_scale, cfg.bc_init_fit_log_std) == (
-        3e-3, True, 10.0, True)
+        1e-3, False, 1.0, False)
     assert cfg.mixture_balance == "dataset"
     assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "default")
     # a reproduction adds only the run's own fields to the defaults
@@ -41,7 +41,8 @@ def test_paper_text_preset_gives_the_texts_settings_and_flags_override_it():
     assert from_dict(AdversarialConfig, {"preset": "paper-text", "lr": 1e-3}).lr == 1e-3  # the user's values win
     assert from_dict(AdversarialConfig, {"preset": "default"}) == AdversarialConfig()
     with pytest.raises(PomilError,
-                       match="config key 'preset': expected one of \\['default', 'paper-text'\\], got 'paper'"):
+                       match="config key 'preset': expected one of \\['default', 'paper-text', "
+                             "'fast-warm-start'\\], got 'paper'"):
         from_dict(AdversarialConfig, {"preset": "paper"})
 
 

@@ -262,14 +262,15 @@ def test_fit_log_std_weights_each_code_by_its_responsibility():
 
 def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
     """Adam's log-std group runs at bc_init_log_std_lr_scale x bc_init_lr; the rate falls linearly
-    to 0 over the steps; paper-text keeps the earlier warm start (1e-3, 1x, no decay, no fit)."""
+    to 0 over the steps (the fast-warm-start preset); the defaults and paper-text: 1e-3, 1x, no decay, no fit."""
     from pomil.algos.adversarial import AdversarialConfig, warm_start_optimizer
     from pomil.config import from_dict
     from pomil.nn.policy import GaussianPolicy, PolicyArch
 
     policy = GaussianPolicy(PolicyArch(2, 2, "gru", 8, num_codes=2))
-    cfg = AdversarialConfig()
+    cfg = from_dict(AdversarialConfig, {"preset": "fast-warm-start"})
     assert (cfg.bc_init_iterations, cfg.bc_init_lr, cfg.bc_init_log_std_lr_scale) == (600, 3e-3, 10.0)
+    assert (cfg.bc_init_lr_decay, cfg.bc_init_fit_log_std) == (True, True)
     opt, decay = warm_start_optimizer(policy, dataclasses.replace(cfg, bc_init_iterations=4))
     assert [g["lr"] for g in opt.param_groups] == [3e-3, pytest.approx(3e-2)]
     assert opt.param_groups[1]["params"] == [policy.log_std]
@@ -284,6 +285,6 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
     opt.step()
     decay.step()
     assert opt.param_groups[0]["lr"] == 3e-3
-    text = from_dict(AdversarialConfig, {"preset": "paper-text"})
-    assert (text.bc_init_lr, text.bc_init_lr_decay, text.bc_init_log_std_lr_scale, text.bc_init_fit_log_std) == (
-        1e-3, False, 1.0, False)
+    for plain in (AdversarialConfig(), from_dict(AdversarialConfig, {"preset": "paper-text"})):
+        assert (plain.bc_init_lr, plain.bc_init_lr_decay, plain.bc_init_log_std_lr_scale,
+                plain.bc_init_fit_log_std) == (1e-3, False, 1.0, False)
