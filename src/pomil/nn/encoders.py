@@ -55,11 +55,15 @@ class MLPEncoder(nn.Module):
 
 
 class BeliefEncoder(nn.Module):
+    """A dense ELU layer, then the recurrent core (``core_class``: the GRU); features = the core's h_t."""
+
+    core_class: type[nn.Module] = GRUCore
+
     def __init__(self, obs_dim: int, act_dim: int, hidden_size: int = 128) -> None:
         super().__init__()
         self.out_size = hidden_size
         self.embed = nn.Sequential(nn.Linear(obs_dim + act_dim, hidden_size), nn.ELU())
-        self.core = GRUCore(hidden_size, hidden_size)
+        self.core = self.core_class(hidden_size, hidden_size)
 
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
         return self.core.initial_state(batch, device)
@@ -72,23 +76,13 @@ class BeliefEncoder(nn.Module):
         return self.core.unroll(self.embed(history_inputs(obs, prev_actions, starts)), h0, starts)
 
 
-class LSTMEncoder(nn.Module):
-    """A dense ELU layer, then an LSTM; features h_t, state [h_t, c_t] (n, 2 * hidden_size)."""
+class LSTMEncoder(BeliefEncoder):
+    """The same with an LSTM core; features h_t, state [h_t, c_t] (n, 2 * hidden_size)."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int = 128) -> None:
-        super().__init__()
-        self.out_size = hidden_size
-        self.embed = nn.Sequential(nn.Linear(obs_dim + act_dim, hidden_size), nn.ELU())
-        self.core = LSTMCore(hidden_size, hidden_size)
-
-    def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
-        return self.core.initial_state(batch, device)
+    core_class = LSTMCore
 
     def step(self, obs, prev_action, h, start):
         return self.core.step(self.embed(history_inputs(obs, prev_action, start)), h, start)
-
-    def unroll(self, obs, prev_actions, h0, starts):
-        return self.core.unroll(self.embed(history_inputs(obs, prev_actions, starts)), h0, starts)
 
 
 class AttentionEncoder(nn.Module):
