@@ -49,7 +49,7 @@ from pomil.algos.bc import (MixtureAssignment, bc_step, demo_batch, demo_nll, fi
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
-from pomil.nn.encoders import fit_input_scale
+from pomil.nn.encoders import OBS_DELTA_HELP, PREV_ACTION_HELP, fit_input_scale
 from pomil.envs import SIM_HELP, default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import ConfigError, PomilError
@@ -117,14 +117,8 @@ class AdversarialConfig(RunConfig):
                "ignored by gail and infogail (feed-forward)")
     attention_context: int = option(32, "with belief_encoder attention: steps it attends to, the current one included",
                                     within="[1, inf)")
-    policy_obs_delta: bool = option(False,
-                                    "the policy (not critic, value or posterior) also sees each observation's change "
-                                    "since the previous step, scaled by the demonstrations' std of it (a "
-                                    "finite-difference velocity for positions-only observations)")
-    policy_prev_action: bool = option(True,
-                                      "the policy's encoder sees the previous action a_{t-1} (the paper's belief); "
-                                      "false: zeros in its place, against the copycat problem of cloning "
-                                      "deterministic demonstrations (docs/hopper.md)")
+    policy_obs_delta: bool = option(False, "the policy (not critic, value or posterior): " + OBS_DELTA_HELP)
+    policy_prev_action: bool = option(True, "the policy's encoder: " + PREV_ACTION_HELP)
     lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
     lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
     shared_value_encoder: bool = option(False,

@@ -23,7 +23,7 @@ from pomil.data import PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
-from pomil.nn.encoders import fit_input_scale
+from pomil.nn.encoders import OBS_DELTA_HELP, PREV_ACTION_HELP, fit_input_scale
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.training import RunLoop, lr_hint
 
@@ -37,12 +37,8 @@ class BCConfig(RunConfig):
     hidden_size: int = option(128, "width of the dense layers and recurrent cells", within="[1, inf)")
     attention_context: int = option(32, "with policy attention: steps it attends to, the current one included",
                                     within="[1, inf)")
-    obs_delta: bool = option(False, "the policy also sees each observation's change since the previous step, scaled "
-                                    "by the demonstrations' std of it (a finite-difference velocity for positions-only "
-                                    "observations)")
-    prev_action: bool = option(True, "the policy's encoder sees the previous action a_{t-1} (the paper's belief); "
-                                     "false: zeros in its place, against the copycat problem of cloning deterministic "
-                                     "demonstrations (docs/hopper.md)")
+    obs_delta: bool = option(False, "the policy: " + OBS_DELTA_HELP)
+    prev_action: bool = option(True, "the policy's encoder: " + PREV_ACTION_HELP)
     iterations: int = option(500, "gradient steps", within="[1, inf)")
     batch_episodes: int = option(64, "whole episodes per minibatch", within="[1, inf)")
     lr: float = option(1e-3, "Adam learning rate", within="(0, inf)")

@@ -216,6 +216,13 @@ class AttentionEncoder(nn.Module):
         return torch.cat(feats, dim=1).transpose(0, 1), self._pack(k[:, :, T:], v[:, :, T:], valid_end)
 
 
+OBS_DELTA_HELP = ("also see each observation's change since the previous step, scaled by the demonstrations' std "
+                  "of it (a finite-difference velocity for positions-only observations)")
+PREV_ACTION_HELP = ("see the previous action a_{t-1} (the paper's belief); false: zeros in its place, against the "
+                    "copycat problem of cloning deterministic demonstrations (docs/hopper.md)")
+"""The policy input options' help (:class:`InputView`), shared by every config that builds a policy."""
+
+
 class InputView(nn.Module):
     """Another encoder (``inner``) fed a chosen view of each step.
 
