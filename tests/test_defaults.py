@@ -106,3 +106,24 @@ def test_short_default_run_separates_the_two_circles(demos_path, tmp_path):
 def test_default_flags_learn_the_two_circles(demos_path, tmp_path):
     m = _default_run(demos_path, tmp_path / "default")
     assert m["modes_covered"] == 2 and m["min_purity"] >= 0.95 and m["nmi"] >= 0.9, m
+
+
+def test_long_episodes_cut_the_episode_counts_to_the_step_caps(capsys):
+    from pomil.algos.adversarial import sized_for_episodes
+    from pomil.algos.bc import BCConfig
+    from pomil.algos.bc import sized_for_episodes as bc_sized
+
+    cfg = AdversarialConfig()
+    for short in (33, 128):  # circles and the paper's Hopper: the configured counts
+        assert sized_for_episodes(cfg, short) == cfg
+    assert capsys.readouterr().err == ""
+    long = sized_for_episodes(cfg, 1000)  # Hopper's own episodes
+    assert (long.num_envs, long.bc_init_batch, long.critic_batch) == (65, 16, 16)
+    assert dataclasses.replace(long, num_envs=256, bc_init_batch=64, critic_batch=64) == cfg
+    assert "1000-step episodes: num_envs 256 -> 65, bc_init_batch 64 -> 16, critic_batch 64 -> 16" in \
+        capsys.readouterr().err
+    tiny = AdversarialConfig(max_iteration_steps=10, max_batch_steps=10, critic_batch=1)
+    assert (lambda c: (c.num_envs, c.bc_init_batch, c.critic_batch))(sized_for_episodes(tiny, 1000)) == (1, 1, 1)
+    assert bc_sized(BCConfig(), 128) == BCConfig()
+    assert bc_sized(BCConfig(), 1000).batch_episodes == 16
+    assert bc_sized(BCConfig(batch_episodes=8), 1000).batch_episodes == 8  # under the cap: as configured

@@ -44,8 +44,8 @@ from typing import Any, Callable, ClassVar, Iterator, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import (MixtureAssignment, bc_step, demo_batch, demo_nll, first_step_starts, fit_log_std,
-                            most_likely_codes)
+from pomil.algos.bc import (MixtureAssignment, bc_step, demo_batch, demo_nll, episodes_within, first_step_starts,
+                            fit_log_std, most_likely_codes)
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
@@ -100,7 +100,14 @@ class AdversarialConfig(RunConfig):
                    "PRESETS")
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
                              within="[0, inf)")
-    num_envs: int = option(256, "episodes collected per iteration", within="[1, inf)")
+    num_envs: int = option(256, "episodes collected per iteration (at most max_iteration_steps of them)",
+                           within="[1, inf)")
+    max_iteration_steps: int = option(65536, "long episodes: at most this many env steps per iteration, counted at the "
+                                             "demonstrations' longest episode: fewer than num_envs episodes (1000-step "
+                                             "Hopper: 65)", within="[1, inf)")
+    max_batch_steps: int = option(16384, "long episodes: at most this many steps in a batch of whole episodes "
+                                         "(warm-start, BC-term and critic batches): fewer than bc_init_batch and "
+                                         "critic_batch episodes (1000-step Hopper: 16)", within="[1, inf)")
     sim: Literal["cpu", "warp"] = option("cpu", SIM_HELP)
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
@@ -132,7 +139,8 @@ class AdversarialConfig(RunConfig):
     lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("adam", "adam (the paper's code) or rmsprop (its text)")
     critic_steps: int = option(3, "critic updates per iteration", within="[1, inf)")
-    critic_batch: int = option(64, "expert and policy episodes per critic update", within="[1, inf)")
+    critic_batch: int = option(64, "expert and policy episodes per critic update (at most max_batch_steps)",
+                               within="[1, inf)")
     expert_action_noise: bool = option(False,
                                        "add the policy's current action noise to the demonstrations' actions the "
                                        "critic sees, so that it cannot tell deterministic experts from the policy by "
@@ -175,7 +183,8 @@ class AdversarialConfig(RunConfig):
     bc_init_fit_log_std: bool = option(False, "end the warm start by setting the log std to its maximum-likelihood "
                                               "value given the means: each action dimension's mean squared error on "
                                               "all demonstrations (weighted by the codes' responsibilities)")
-    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step", within="[1, inf)")
+    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step and BC-term batch (at most "
+                                    "max_batch_steps)", within="[1, inf)")
     bc_init_codes: Literal["random", "mixture"] = option("mixture",
                                                          "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes "
@@ -666,6 +675,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     """Train (or continue) an adversarial run; returns the checkpoint path."""
     if not cfg.demos:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
+    cfg = sized_for_episodes(cfg, Demonstrations.load(cfg.demos).episode_lengths.max(initial=0))
     with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
         demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
         num_codes = resolve_num_codes(cfg, demos)
@@ -690,6 +700,22 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
                         first_row=init_stats, evaluate=evaluate, eval_every=cfg.eval_every,
                         log_extras=lambda: {"policy/log_std": m.policy.log_std.mean().item(), **clock.shares()})
+
+
+def sized_for_episodes(cfg: AdversarialConfig, episode_steps: int) -> AdversarialConfig:
+    """``cfg`` with its episode counts cut to the step caps for episodes of ``episode_steps``: num_envs
+    to max_iteration_steps, bc_init_batch and critic_batch to max_batch_steps (never below 1 episode),
+    with a note on stderr when one is cut.  The paper's 128-step Hopper and 33-step circles stay at
+    the configured counts; Hopper's own 1000 steps get 65 episodes per iteration and batches of 16."""
+    caps = {"num_envs": cfg.max_iteration_steps, "bc_init_batch": cfg.max_batch_steps,
+            "critic_batch": cfg.max_batch_steps}
+    cut = {k: episodes_within(cap, episode_steps) for k, cap in caps.items()}
+    cut = {k: n for k, n in cut.items() if n < getattr(cfg, k)}
+    if cut:
+        print(f"pomil: note: {episode_steps}-step episodes: " + ", ".join(
+            f"{k} {getattr(cfg, k)} -> {n}" for k, n in cut.items()) + " (max_iteration_steps "
+              f"{cfg.max_iteration_steps}, max_batch_steps {cfg.max_batch_steps})", file=sys.stderr)
+    return replace(cfg, **cut)
 
 
 KEY_STATS = ("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein")

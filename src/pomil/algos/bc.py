@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from pomil.config import RunConfig, option, parse_kwargs
-from pomil.data import PaddedEpisodes, load_training_demos
+from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
@@ -40,7 +40,10 @@ class BCConfig(RunConfig):
     obs_delta: bool = option(False, "the policy: " + OBS_DELTA_HELP)
     prev_action: bool = option(True, "the policy's encoder: " + PREV_ACTION_HELP)
     iterations: int = option(500, "gradient steps", within="[1, inf)")
-    batch_episodes: int = option(64, "whole episodes per minibatch", within="[1, inf)")
+    batch_episodes: int = option(64, "whole episodes per minibatch (at most max_batch_steps)", within="[1, inf)")
+    max_batch_steps: int = option(16384, "long episodes: at most this many steps per minibatch, counted at the "
+                                         "demonstrations' longest episode: fewer than batch_episodes (1000-step "
+                                         "Hopper: 16)", within="[1, inf)")
     lr: float = option(1e-3, "Adam learning rate", within="(0, inf)")
     log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy", within="(-inf, inf)")
 
@@ -239,11 +242,28 @@ def most_likely_codes(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions
     return mixture_bc_loss(policy, data, prev_actions)[1].argmax(0)
 
 
+def episodes_within(max_steps: int, episode_steps: int) -> int:
+    """Whole episodes of ``episode_steps`` in ``max_steps`` steps, at least one."""
+    return max(1, max_steps // max(int(episode_steps), 1))
+
+
+def sized_for_episodes(config: BCConfig, episode_steps: int) -> BCConfig:
+    """``config`` with batch_episodes cut to max_batch_steps for episodes of ``episode_steps`` (a note
+    on stderr when cut)."""
+    n = episodes_within(config.max_batch_steps, episode_steps)
+    if n >= config.batch_episodes:
+        return config
+    print(f"pomil: note: {episode_steps}-step episodes: batch_episodes {config.batch_episodes} -> {n} "
+          f"(max_batch_steps {config.max_batch_steps})", file=sys.stderr)
+    return replace(config, batch_episodes=n)
+
+
 def train_bc(config: BCConfig, resume: bool = False) -> Path:
     """Train (or continue) a BC run; returns the checkpoint path."""
     if not config.demos:
         raise PomilError("bc: --demos is required (a demonstrations .npz file)")
     hints = {"bc": lr_hint(config, "lr"), "policy": lr_hint(config, "lr")}
+    config = sized_for_episodes(config, Demonstrations.load(config.demos).episode_lengths.max(initial=0))
     with RunLoop(config, algo="bc", resume=resume, hints=hints) as loop:
         demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs),
                                                         parse_mask(config.observation_mask))
