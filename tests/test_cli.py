@@ -86,11 +86,23 @@ def test_every_option_has_help_with_its_default():
 def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     out = tmp_path / "results"
     (tmp_path / "adv.json").write_text(json.dumps({"bc_init_iterations": 3, "num_envs": 8, "hidden_size": 16}))
-    r = pomil("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
-              "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2,
-              "--adversarial-config", tmp_path / "adv.json",
-              "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz", "--no-progress")
+    (tmp_path / "bc.json").write_text(json.dumps({"hidden_size": 8, "obs_delta": True}))
+    args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
+            "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2,
+            "--adversarial-config", tmp_path / "adv.json", "--bc-config", tmp_path / "bc.json",
+            "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz", "--no-progress")
+    r = pomil(*args)
     assert r.returncode == 0, r.stderr
+    bc_run = json.loads((tmp_path / "runs" / "bc-gru" / "seed1" / "config.json").read_text())
+    assert (bc_run["hidden_size"], bc_run["obs_delta"], bc_run["iterations"], bc_run["policy"]) == (8, True, 5, "gru")
+    # --resume-runs: every run is finished, so none trains again and the figures are the same
+    checkpoints = {p: p.read_bytes() for p in (tmp_path / "runs").glob("*/seed*/checkpoint.pt")}
+    first = json.loads((out / "metrics.json").read_text())["learners"]
+    r = pomil(*args, "--resume-runs")
+    assert r.returncode == 0, r.stderr
+    assert len(checkpoints) == 6 and all(p.read_bytes() == b for p, b in checkpoints.items())
+    again = json.loads((out / "metrics.json").read_text())["learners"]
+    assert {k: v["summary"] for k, v in again.items()} == {k: v["summary"] for k, v in first.items()}
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics["learners"]) == {"bc-mlp", "bc-gru", "gail"}
     assert len(metrics["learners"]["bc-gru"]["runs"]) == 2

@@ -65,6 +65,9 @@ class LearnerRuns(RayOptions):
                                          "default)",
                                          within="[0, inf)")
     adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults")
+    bc_config: str = option("", "JSON file of BCConfig settings that replace the defaults (bc-mlp, bc-gru)")
+    resume_runs: bool = option(False, "continue each (learner, seed) run from its checkpoint under --runs when it has "
+                                      "one (a finished run is only evaluated again); its settings must not change")
 
 
 @dataclass(frozen=True)
@@ -98,12 +101,17 @@ def check_runs(cfg: Any) -> None:
 # adversarial_iterations, adversarial_config, progress).
 def train_learner(cfg: Any, name: str, seed: int, run_dir: Path) -> Path:
     """Train learner ``name`` (:data:`pomil.learners.LEARNERS`) for one seed of a reproduction."""
+    from pomil.config import load_config_file
+
     learner = LEARNERS[name]
+    resume = cfg.resume_runs and (run_dir / "checkpoint.pt").exists()
     if name in ADVERSARIAL:
-        return learner.train(adversarial_config(cfg, name, seed, run_dir))
-    iterations = {"iterations": cfg.bc_iterations} if cfg.bc_iterations else {}
-    return learner.train(learner.make_config({"demos": cfg.demos_file, "out": str(run_dir), "seed": seed,
-                                              "progress": cfg.progress, **iterations}))
+        return learner.train(adversarial_config(cfg, name, seed, run_dir), resume=resume)
+    values = load_config_file(cfg.bc_config) if cfg.bc_config else {}
+    values.update({"iterations": cfg.bc_iterations} if cfg.bc_iterations else {})
+    values.update(demos=cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress)
+    return learner.train(learner.make_config(values, source=cfg.bc_config or "the reproduction's settings"),
+                         resume=resume)
 
 
 def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: str | None = None):
@@ -232,8 +240,9 @@ def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable,
     if cfg.ray:  # workers may start elsewhere: every path absolute
         where = cfg.path if hasattr(cfg, "path") else (lambda k: getattr(cfg, k))  # Hopper's defaults live in path()
         absolute = {k: str(Path(where(k)).resolve()) for k in ("out", "runs", "demos") if hasattr(cfg, k)}
-        if cfg.adversarial_config:
-            absolute["adversarial_config"] = str(Path(cfg.adversarial_config).resolve())
+        for k in ("adversarial_config", "bc_config"):
+            if getattr(cfg, k, ""):
+                absolute[k] = str(Path(getattr(cfg, k)).resolve())
         cfg = dataclasses.replace(cfg, progress=False, **absolute)
     keys = [(name, seed) for name in (names or cfg.learners) for seed in range(cfg.seeds)]
     results = run_jobs(job, [(cfg, name, seed) for name, seed in keys], [f"[{n}] seed {s}" for n, s in keys],
