@@ -51,7 +51,7 @@ def test_every_numeric_field_declares_its_interval_and_defaults_lie_in_it(cls):
     ({"log_std_init": float("nan")}, "config key 'log_std_init': expected a finite number in (-inf, inf), got nan"),
     ({"clip": -0.2}, "config key 'clip': expected a finite number in (0, inf), got -0.2"),
     ({"eval_every": -1}, "config key 'eval_every': expected an integer in [0, inf), got -1"),
-    ({"num_codes": 1}, "config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got 1"),
+    ({"num_codes": 1}, "config key 'num_codes': expected -1 (from the demonstrations), auto or >= 2, got 1"),
     ({"device": "tpu"}, "config key 'device': expected cpu, cuda, cuda:N, mps or auto, got 'tpu'"),
     ({"demos": 5}, "config key 'demos': expected str, got 5"),
     ({"progress": "maybe"}, "config key 'progress': expected bool, got 'maybe'"),

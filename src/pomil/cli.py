@@ -20,7 +20,7 @@ from typing import Any, Literal, get_args, get_origin
 
 import numpy as np
 
-from pomil.config import field_help, field_interval, from_dict, load_config_file, option
+from pomil.config import field_help, field_interval, field_names, from_dict, load_config_file, option
 from pomil.errors import PomilError
 
 
@@ -37,7 +37,8 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
         flag = "--" + f.name.replace("_", "-")
         default = f.default
         interval = field_interval(f)
-        help_text = f"{field_help(f)} (default: {default!r}{'; in ' + interval.text if interval else ''})"
+        words = "".join(f" or {word}" for word in field_names(f))
+        help_text = f"{field_help(f)} (default: {default!r}{'; in ' + interval.text + words if interval else ''})"
         if tp is bool:
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_text)
             continue

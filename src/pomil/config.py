@@ -58,14 +58,22 @@ class Interval(NamedTuple):
         return above and below
 
 
-def option(default: Any, help: str, within: str | None = None, **kwargs: Any) -> Any:
+def option(default: Any, help: str, within: str | None = None, named: dict[str, int] | None = None,
+           **kwargs: Any) -> Any:
     """A dataclass field with a default, its one-line description and, for a number
     (or a tuple of numbers), the interval its values must lie in: ``within="[1, inf)"``
     (a count), ``"(0, inf)"`` (a learning rate), ``"(0, 1]"`` (a discount),
-    ``"(-inf, inf)"`` (any finite value).  Every int and float field declares one."""
+    ``"(-inf, inf)"`` (any finite value).  Every int and float field declares one.
+
+    ``named``: words that a flag or JSON file may give for reserved values of an int field
+    (``{"auto": 0}``); the field holds the value, and config.json and checkpoints record the word."""
     if isinstance(default, (list, dict, set)):
         raise TypeError("use a tuple for sequence defaults")
     metadata = {"help": help, **kwargs}
+    if named:
+        if within is None or any(not isinstance(v, int) or v not in Interval.parse(within) for v in named.values()):
+            raise ValueError(f"named values {named} must be integers in the field's interval {within}")
+        metadata["named"] = dict(named)
     if within is not None:
         interval = Interval.parse(within)
         for v in default if isinstance(default, tuple) else (default,):
@@ -81,6 +89,11 @@ def field_help(f: dataclasses.Field) -> str:
 
 def field_interval(f: dataclasses.Field) -> Interval | None:
     return f.metadata.get("within")
+
+
+def field_names(f: dataclasses.Field) -> dict[str, int]:
+    """The words a flag or JSON file may give for the field's reserved values (``{"auto": 0}``), if any."""
+    return f.metadata.get("named", {})
 
 
 def _type_name(tp: Any) -> str:
@@ -176,6 +189,19 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     return value
 
 
+def _coerce_named(value: Any, tp: Any, key: str, named: dict[str, int]) -> Any:
+    """:func:`_coerce`, with the field's words for reserved values (``"auto"``) read as those values."""
+    if not named or not isinstance(value, str):
+        return _coerce(value, tp, key)
+    if value.strip().lower() in named:
+        return named[value.strip().lower()]
+    try:
+        return _coerce(value, tp, key)
+    except ConfigError:
+        raise ConfigError(f"config key '{key}': expected an integer or {' or '.join(map(repr, named))}, "
+                          f"got {value!r}") from None
+
+
 def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T:
     """Build ``cls`` from a dict, rejecting unknown keys and coercing types.
 
@@ -195,9 +221,10 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
             raise ConfigError(f"config key 'preset': expected one of {list(presets)}, got {values['preset']!r}")
         values = {**presets[values["preset"]], **values}
     hints = _resolved_types(cls)
+    named = {f.name: field_names(f) for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     where = "" if source == "config" else f"{source}: "
     try:
-        coerced = {k: _coerce(v, hints[k], k) for k, v in values.items()}
+        coerced = {k: _coerce_named(v, hints[k], k, named[k]) for k, v in values.items()}
         config = cls(**coerced)
         check_fields(config)  # also for configs without a __post_init__ that calls it
         return config
@@ -256,8 +283,14 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
 
 
 def to_dict(config: Any) -> dict[str, Any]:
-    """Plain JSON-able dict of a config dataclass (tuples become lists)."""
-    return json.loads(json.dumps(dataclasses.asdict(config)))
+    """Plain JSON-able dict of a config dataclass (tuples become lists; a reserved value of a field
+    with ``named`` values as its word, e.g. ``"auto"``, so that :func:`from_dict` reads it back)."""
+    values = json.loads(json.dumps(dataclasses.asdict(config)))
+    for f in dataclasses.fields(config):
+        words = {v: word for word, v in field_names(f).items()}
+        if words and type(values[f.name]) is int and values[f.name] in words:
+            values[f.name] = words[values[f.name]]
+    return values
 
 
 def parse_kwargs(entries: tuple[str, ...] | list[str], name: str = "env_kwargs") -> dict[str, Any]:

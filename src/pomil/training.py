@@ -503,6 +503,7 @@ class RunLoop:
         self.generator = torch.Generator()
         self.logger: RunLogger | None = None
         self.env: dict[str, Any] = {}
+        self.record: dict[str, Any] = {}
         self.nets: dict[str, Any] = {}
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
 
@@ -518,13 +519,15 @@ class RunLoop:
         return self.generator
 
     def start(self, *, env: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, torch.optim.Optimizer],
-              env_steps: bool = True) -> bool:
+              env_steps: bool = True, record: dict[str, Any] | None = None) -> bool:
         """Take the lock, resume (under ``--resume``) and write ``config.json``; False when the checkpoint
         is at the last iteration already (nothing to do: a note says so).
 
         ``env``: the environment's id, kwargs and observation_mask; ``nets``: every network by name, the
-        policy as ``policy`` (None entries skipped); ``env_steps``: whether the learner counts them."""
-        self.env, self.nets, self.optimizers = env, nets, optimizers
+        policy as ``policy`` (None entries skipped); ``env_steps``: whether the learner counts them;
+        ``record``: what the run chose from the data before training (``--num-codes auto``'s K and its
+        evidence), written into config.json after the config and into the checkpoint as ``record``."""
+        self.env, self.nets, self.optimizers, self.record = env, nets, optimizers, dict(record or {})
         self.lock.acquire(self.resume)
         config = to_dict(self.config)
         begun = (resume_run(self.ckpt_path, config, nets, optimizers, self.generator, self.device, type(self.config))
@@ -536,7 +539,7 @@ class RunLoop:
             print(f"pomil: note: {self.ckpt_path} is already at iteration {begun.iteration}: nothing to do",
                   file=sys.stderr)
             return False
-        write_json(self.dir / "config.json", {"algo": self.algo, **config})
+        write_json(self.dir / "config.json", {"algo": self.algo, **config, **self.record})
         return True
 
     def run(self, update: Callable[[int], dict[str, float]], *, desc: str, key_stats: tuple[str, ...] = (),
@@ -587,7 +590,8 @@ class RunLoop:
         ``env``, ``policy_arch``, ``policy`` (what :class:`pomil.TrainedPolicy` loads), ``optimizers``
         and ``rng`` (what ``--resume`` restores); ``nets`` (every network by name) when there is more
         than the policy; ``obs_norm`` when the policy normalises its observations (experts);
-        ``env_steps`` when the learner counts them."""
+        ``env_steps`` when the learner counts them; ``record`` when the run chose something from the data
+        (:meth:`start`)."""
         policy = self.nets["policy"]
         payload = {"algo": self.algo, "config": to_dict(self.config), "env": self.env,
                    "policy_arch": policy.arch.to_dict(), "policy": policy.state_dict()}
@@ -599,4 +603,6 @@ class RunLoop:
         payload["rng"] = rng_state(self.generator)
         if self.env_steps is not None:
             payload["env_steps"] = self.env_steps
+        if self.record:
+            payload["record"] = self.record
         return payload

@@ -46,6 +46,7 @@ import torch.nn.functional as F
 
 from pomil.algos.bc import (MixtureAssignment, bc_step, demo_batch, demo_nll, episodes_within, first_step_starts,
                             fit_log_std, most_likely_codes)
+from pomil.algos.num_codes import NumCodesChoice, search_num_codes
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
@@ -60,7 +61,7 @@ from pomil.rl.gae import gae
 from pomil.rl.collect import collect
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
-from pomil.training import DivergenceGuard, RunLoop, lr_hint
+from pomil.training import DivergenceGuard, RunLoop, load_checkpoint, lr_hint
 
 LEARNER_KINDS = {  # what each learner is made of (recurrent: belief encoders of kind ``belief_encoder``, else MLPs)
     "gail": {"recurrent": False, "codes": False, "critic_objective": "gan"},
@@ -113,9 +114,21 @@ class AdversarialConfig(RunConfig):
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
     num_codes: int = option(-1,
-                            "latent codes K >= 2; -1 = number of modes in the demonstrations, at least 2 (ignored by "
-                            "gail)",
-                            within="[-1, inf)")
+                            "latent codes K >= 2; -1 = number of modes the demonstrations' metadata or labels name, "
+                            "at least 2; auto = chosen by the mixture warm start's held-out classification likelihood "
+                            "for K = 1..num_codes_max (docs/method.md; 0 in Python) (ignored by gail)",
+                            within="[-1, inf)", named={"auto": 0})
+    num_codes_max: int = option(6, "with num_codes auto: the largest K tried (one warm start each)",
+                                within="[2, inf)")
+    num_codes_search_iterations: int = option(500, "with num_codes auto: mixture warm-start steps of each K's fit "
+                                                   "on the training split (each ends with the log std's fit)",
+                                              within="[1, inf)")
+    num_codes_tolerance: float = option(0.05, "with num_codes auto: take the smallest K whose held-out score is "
+                                              "within this fraction of the gain from K 1 to the best K",
+                                        within="[0, 1)")
+    num_codes_min_gain: float = option(0.01, "with num_codes auto: K 1 (then trained with 2 codes) when the best K's "
+                                             "held-out score is at most this many nats per step above K 1's",
+                                       within="[0, inf)")
     hidden_size: int = option(128, "dense width and recurrent cells (attention: model width) of every network",
                               within="[1, inf)")
     belief_encoder: Literal["gru", "lstm", "attention"] = option(
@@ -234,8 +247,8 @@ class AdversarialConfig(RunConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()  # every field in its interval (see the option declarations)
-        if self.num_codes in (0, 1):
-            raise ConfigError("config key 'num_codes': expected -1 (from the demonstrations) or >= 2, got "
+        if self.num_codes == 1:
+            raise ConfigError("config key 'num_codes': expected -1 (from the demonstrations), auto or >= 2, got "
                               f"{self.num_codes}")
 
 
@@ -432,12 +445,18 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
 
 
 # ---------------------------------------------------------------------- train
+def policy_arch(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int) -> PolicyArch:
+    """The policy of a run with ``num_codes`` codes."""
+    enc = cfg.belief_encoder if LEARNER_KINDS[cfg.learner]["recurrent"] else "mlp"
+    return PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean,
+                      cfg.attention_context, cfg.policy_obs_delta, cfg.policy_prev_action)
+
+
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
                   device: torch.device | str) -> tuple[Modules, PolicyArch]:
     enc = cfg.belief_encoder if LEARNER_KINDS[cfg.learner]["recurrent"] else "mlp"
     ctx = cfg.attention_context
-    arch = PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean, ctx,
-                      cfg.policy_obs_delta, cfg.policy_prev_action)
+    arch = policy_arch(cfg, obs_dim, act_dim, num_codes)
     policy = GaussianPolicy(arch).to(device)
     heads_enc = "mlp" if cfg.belief == "policy" else enc
     value = heads.value(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx).to(device)
@@ -457,9 +476,17 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes:
     return m, arch
 
 
+NUM_CODES_AUTO = 0
+"""``num_codes`` of ``--num-codes auto`` (config.json records the word): K chosen by :func:`auto_num_codes`."""
+
+
 def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
+    """The run's number of codes: 0 without codes, the configured K, or (-1) the demonstrations'
+    modes; ``num_codes auto`` is chosen by :func:`auto_num_codes` instead."""
     if not LEARNER_KINDS[cfg.learner]["codes"]:
         return 0
+    if cfg.num_codes == NUM_CODES_AUTO:
+        raise ValueError("num_codes auto is chosen from the demonstrations by auto_num_codes")
     if cfg.num_codes > 0:
         return cfg.num_codes
     suggested = default_num_codes(demos.metadata)  # circles: one per circle
@@ -678,8 +705,12 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     cfg = sized_for_episodes(cfg, Demonstrations.load(cfg.demos).episode_lengths.max(initial=0))
     with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
         demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
-        num_codes = resolve_num_codes(cfg, demos)
-        gen = loop.seed()
+        choice = None
+        if cfg.num_codes == NUM_CODES_AUTO and LEARNER_KINDS[cfg.learner]["codes"]:
+            choice = (recorded_choice(loop.ckpt_path) if resume else
+                      auto_num_codes(cfg, demos.padded(loop.device), execute, loop.guard))
+        num_codes = choice.trained if choice is not None else resolve_num_codes(cfg, demos)
+        gen = loop.seed()  # after the search, which seeds its own fits: the run is that of --num-codes K
         m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, loop.device)
         expert = demos.padded(loop.device)
         fit_input_scale(m.policy.encoder, expert.observations, expert.mask)
@@ -688,7 +719,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch "
                   f"has {cfg.num_envs} minibatches of one episode", file=sys.stderr)
         nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
-        if not loop.start(env=env_info, nets=nets, optimizers=opt):
+        if not loop.start(env=env_info, nets=nets, optimizers=opt, record=choice.record() if choice else None):
             return loop.ckpt_path
         expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
         run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
@@ -698,8 +729,48 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
         return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
-                        first_row=init_stats, evaluate=evaluate, eval_every=cfg.eval_every,
+                        first_row={**(choice.stats() if choice else {}), **init_stats}, evaluate=evaluate,
+                        eval_every=cfg.eval_every,
                         log_extras=lambda: {"policy/log_std": m.policy.log_std.mean().item(), **clock.shares()})
+
+
+def auto_num_codes(cfg: AdversarialConfig, expert: PaddedEpisodes, execute: Callable[[torch.Tensor], torch.Tensor],
+                   guard: DivergenceGuard | None = None) -> NumCodesChoice:
+    """``--num-codes auto``: K from the demonstrations ``expert`` by the held-out classification
+    likelihood of the mixture warm start (:mod:`pomil.algos.num_codes`).  Each K's policy is the run's, seeded by the
+    run's seed and fitted by the run's warm start (:func:`clone_demonstrations`, always the codes'
+    mixture) for ``num_codes_search_iterations`` steps on the training split, then its log std set to
+    its maximum-likelihood value (``bc_init_fit_log_std``, whatever the run's own setting): a few hundred
+    Adam steps move the log std only about 1e-3 each, and the scores would measure mostly how far it got
+    (Hopper, 150 steps: K 3 ahead of K 2 without the fit, K 2 clearly ahead with it)."""
+    expert = replace(expert, actions=execute(expert.actions))  # as the warm start sees them
+    search_cfg = replace(cfg, bc_init_iterations=cfg.num_codes_search_iterations, bc_init_fit_log_std=True)
+
+    def fit(k: int, train: PaddedEpisodes, train_prev: torch.Tensor) -> GaussianPolicy:
+        torch.manual_seed(cfg.seed)  # every K from the same random numbers: fewer differences by chance
+        gen = torch.Generator().manual_seed(cfg.seed)
+        policy = GaussianPolicy(policy_arch(cfg, expert.observations.shape[-1], expert.actions.shape[-1], k))
+        policy = policy.to(expert.mask.device)
+        fit_input_scale(policy.encoder, train.observations, train.mask)
+        clone_demonstrations(policy, train, train_prev, k, True, search_cfg, gen, guard, f"num_codes auto, K {k}: ")
+        return policy
+
+    try:
+        return search_num_codes(fit, expert, shift_actions(expert.actions), cfg.num_codes_max, cfg.seed,
+                                cfg.num_codes_tolerance, cfg.num_codes_min_gain)
+    except ValueError as err:
+        raise PomilError(f"{cfg.demos}: num_codes auto: {err}") from None
+
+
+def recorded_choice(ckpt_path: Path) -> NumCodesChoice:
+    """The K that a ``--num-codes auto`` run chose, from its checkpoint (``--resume`` searches no more)."""
+    if not ckpt_path.exists():
+        raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {ckpt_path.parent})")
+    try:
+        return NumCodesChoice.from_record(load_checkpoint(ckpt_path).get("record"))
+    except (TypeError, ValueError):
+        raise PomilError(f"{ckpt_path}: cannot resume a num_codes auto run from this checkpoint: it records no chosen "
+                         "number of codes") from None
 
 
 def sized_for_episodes(cfg: AdversarialConfig, episode_steps: int) -> AdversarialConfig:
@@ -776,19 +847,7 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     demonstrations' likelihood under a uniform mixture of its codes, so each code clones
     its own cluster of episodes; the posterior then learns, on the demonstrations, to
     tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
-    opt, decay = warm_start_optimizer(m.policy, cfg)
-    stats: dict[str, float] = {}
-    assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
-    for step in range(1, cfg.bc_init_iterations + 1):
-        stats = bc_step(m.policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
-        decay.step()
-        if guard is not None:
-            where = f"warm-start step {step}"
-            guard.value(where, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
-            guard.grads(where, "warm-start policy", m.policy.parameters())
-            guard.params(where, {"warm-start policy": m.policy})
-    if cfg.bc_init_fit_log_std:
-        stats.update(fit_log_std(m.policy, expert, expert_prev, mixture))
+    stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
     if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = most_likely_codes(m.policy, expert, expert_prev)
         stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
@@ -806,6 +865,28 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
             post_opt.step()
         stats.update(s)
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
+
+
+def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
+                         mixture: bool, cfg: AdversarialConfig, gen: torch.Generator,
+                         guard: DivergenceGuard | None = None, where: str = "") -> dict[str, float]:
+    """The policy's part of :func:`bc_warm_start`: ``bc_init_iterations`` behaviour-cloning steps
+    (the codes' mixture, or random codes), then the log std's fit (``bc_init_fit_log_std``).
+    Returns the last step's stats; ``where`` prefixes the step in a divergence's message."""
+    opt, decay = warm_start_optimizer(policy, cfg)
+    stats: dict[str, float] = {}
+    assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
+    for step in range(1, cfg.bc_init_iterations + 1):
+        stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
+        decay.step()
+        if guard is not None:
+            at = f"{where}warm-start step {step}"
+            guard.value(at, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
+            guard.grads(at, "warm-start policy", policy.parameters())
+            guard.params(at, {"warm-start policy": policy})
+    if cfg.bc_init_fit_log_std:
+        stats.update(fit_log_std(policy, expert, expert_prev, mixture))
+    return stats
 
 
 def warm_start_optimizer(policy: GaussianPolicy,

@@ -1,0 +1,177 @@
+"""``--num-codes auto``: the number of latent codes K chosen from unlabelled demonstrations.
+
+For each K = 1..K_max the mixture warm start (each of K codes clones its own balanced
+share of the episodes, :func:`pomil.algos.adversarial.clone_demonstrations`) is fitted to
+a training split of the episodes (80%, split by the run's seed), and the held-out
+episodes are scored per step by their *classification* log-likelihood under the uniform
+mixture of the K codes (:func:`classification_log_likelihood`, the held-out form of
+Biernacki et al.'s ICL): sum_k q_k (log p(episode | k) - log K), q the episode's
+posterior over the codes.  That is the mixture log-likelihood log (1/K) sum_k p(episode | k)
+less the entropy of q.  The criterion (:func:`choose_num_codes`) takes the smallest K whose
+score comes within ``tolerance`` of the whole gain from K = 1 to the best K, and K = 1
+when that gain is at most ``min_gain`` nats per step.
+
+Why the entropy term: the balanced warm start gives every code 1/K of the episodes, so
+with more codes than modes some codes clone the *same* mode.  Such duplicates leave the
+mixture log-likelihood unchanged (two codes at p each: log(2p / 4) = log(p / 2), the same
+as two codes for two modes), so the plain held-out likelihood cannot tell K = 4 from K = 2
+on two circles, and the fits' noise picked either (measured: K 2 -0.2779, K 4 -0.2764 per
+step).  A duplicated mode leaves its episodes' q split between the duplicates, and the
+entropy charges log 2 nats per such episode: K 4 then scored 0.02 per step below K 2, and
+one circle's episodes split over two codes scored below one code (docs/method.md).
+Held-out scores need no parameter count (a BIC's would mean little for networks that
+share all but a code embedding); log-likelihood differences do not depend on the
+actions' units, so ``min_gain`` is in nats and ``tolerance`` a fraction of the gain.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, NamedTuple
+
+import torch
+
+from pomil.algos.bc import episode_log_likelihoods
+from pomil.data import PaddedEpisodes
+from pomil.nn.policy import GaussianPolicy
+
+HELDOUT_SHARE = 0.2
+"""Share of the demonstration episodes held out to score each K."""
+
+
+def mixture_log_likelihood(code_log_likelihoods: torch.Tensor) -> torch.Tensor:
+    """Each episode's log-likelihood under the uniform mixture of K codes, (E,), from its
+    log-likelihood under each code, (K, E): log (1/K) sum_k exp(L_k)."""
+    return torch.logsumexp(code_log_likelihoods, 0) - math.log(code_log_likelihoods.shape[0])
+
+
+def code_posterior_entropy(code_log_likelihoods: torch.Tensor) -> torch.Tensor:
+    """Each episode's entropy (nats) of its posterior over the K codes under a uniform prior, (E,),
+    from its log-likelihood under each code, (K, E): 0 when one code explains it, log 2 when two alike."""
+    log_q = torch.log_softmax(code_log_likelihoods, 0)
+    return -(log_q.exp() * log_q).sum(0)
+
+
+def classification_log_likelihood(code_log_likelihoods: torch.Tensor) -> torch.Tensor:
+    """Each episode's classification log-likelihood, (E,): sum_k q_k (L_k - log K) with q =
+    softmax(L), the mixture log-likelihood less the entropy of the posterior over the codes."""
+    return mixture_log_likelihood(code_log_likelihoods) - code_posterior_entropy(code_log_likelihoods)
+
+
+class HeldoutScore(NamedTuple):
+    score: float
+    """Classification log-likelihood per step (:func:`classification_log_likelihood`)."""
+    log_likelihood: float
+    """Mixture log-likelihood per step (:func:`mixture_log_likelihood`)."""
+    entropy: float
+    """Mean entropy of an episode's posterior over the codes, nats per episode."""
+
+
+def heldout_score(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> HeldoutScore:
+    """The score of (held-out) whole episodes under the policy's codes, per step: their summed
+    classification log-likelihood / their steps."""
+    ll = episode_log_likelihoods(policy, data, prev_actions)
+    steps = data.mask.sum().item()
+    return HeldoutScore(classification_log_likelihood(ll).sum().item() / steps,
+                        mixture_log_likelihood(ll).sum().item() / steps, code_posterior_entropy(ll).mean().item())
+
+
+def choose_num_codes(scores: Mapping[int, float], tolerance: float, min_gain: float) -> int:
+    """The number of codes that ``scores`` (held-out scores per step, by K = 1..K_max)
+    call for: the smallest K whose score is within ``tolerance`` x the gain from K = 1 to the
+    best K; 1 when that gain is at most ``min_gain`` (nats per step).  Ties go to the smaller K."""
+    ks = sorted(scores)
+    if ks[:1] != [1] or ks != list(range(1, len(ks) + 1)):
+        raise ValueError(f"scores must be given for K = 1, 2, ..., K_max; got K = {ks}")
+    if not all(math.isfinite(scores[k]) for k in ks):
+        raise ValueError(f"scores must be finite, got {dict(scores)}")
+    best = max(ks, key=lambda k: (scores[k], -k))
+    gain = scores[best] - scores[1]
+    if gain <= min_gain:
+        return 1
+    return min(k for k in ks if scores[k] >= scores[best] - tolerance * gain)
+
+
+def heldout_split(num_episodes: int, seed: int, share: float = HELDOUT_SHARE) -> tuple[torch.Tensor, torch.Tensor]:
+    """(training, held-out) episode indices, each sorted: ``share`` of the episodes (at least one)
+    held out at random by ``seed``, at least one kept for training."""
+    if num_episodes < 2:
+        raise ValueError(f"needs at least 2 demonstration episodes to hold some out, got {num_episodes}")
+    perm = torch.randperm(num_episodes, generator=torch.Generator().manual_seed(seed))
+    held = min(max(1, round(share * num_episodes)), num_episodes - 1)
+    return perm[held:].sort().values, perm[:held].sort().values
+
+
+@dataclass(frozen=True)
+class NumCodesChoice:
+    """What ``--num-codes auto`` chose and its evidence (config.json, the checkpoint, row 0 of the log)."""
+
+    chosen: int
+    """The criterion's K (:func:`choose_num_codes`); 1: no evidence of more than one mode."""
+    scores: dict[int, float]
+    """Held-out classification log-likelihood per step (:func:`heldout_score`), by K."""
+    entropies: dict[int, float]
+    """Mean entropy of a held-out episode's posterior over the codes (nats), by K."""
+
+    @property
+    def trained(self) -> int:
+        """The codes the run trains: the chosen K, but at least 2 (a single code carries no information)."""
+        return max(2, self.chosen)
+
+    def record(self) -> dict[str, Any]:
+        return {"num_codes_chosen": self.chosen, "num_codes_trained": self.trained,
+                "num_codes_evidence": {str(k): v for k, v in self.scores.items()},
+                "num_codes_code_entropy": {str(k): v for k, v in self.entropies.items()}}
+
+    @classmethod
+    def from_record(cls, record: Any) -> "NumCodesChoice":
+        """The choice that :meth:`record` wrote; ValueError when it is missing or damaged."""
+        if not isinstance(record, dict):
+            raise ValueError("no record")
+        chosen, evidence = record.get("num_codes_chosen"), record.get("num_codes_evidence")
+        entropy = record.get("num_codes_code_entropy")
+        if type(chosen) is not int or chosen < 1 or not isinstance(evidence, dict) or not isinstance(entropy, dict):
+            raise ValueError("no chosen number of codes")
+        scores = {int(k): float(v) for k, v in evidence.items()}
+        if chosen not in scores:
+            raise ValueError("the chosen number of codes has no score")
+        return cls(chosen, scores, {int(k): float(v) for k, v in entropy.items()})
+
+    def stats(self) -> dict[str, float]:
+        """Row 0 of the run's log."""
+        return {"init/num_codes": float(self.trained), "init/num_codes_chosen": float(self.chosen),
+                **{f"init/num_codes_score_k{k}": v for k, v in self.scores.items()},
+                **{f"init/num_codes_entropy_k{k}": v for k, v in self.entropies.items()}}
+
+
+def search_num_codes(fit: Callable[[int, PaddedEpisodes, torch.Tensor], GaussianPolicy], data: PaddedEpisodes,
+                     prev_actions: torch.Tensor, max_codes: int, seed: int, tolerance: float,
+                     min_gain: float) -> NumCodesChoice:
+    """Fit ``fit(K, training episodes, their previous actions) -> policy`` for K = 1..``max_codes``
+    (fewer when the training split has fewer episodes), score each on the held-out episodes
+    (:func:`heldout_score`) and choose K (:func:`choose_num_codes`); one line per K and one for
+    the choice on stderr."""
+    train, held = heldout_split(data.mask.shape[1], seed)
+    train_data, held_data = data.select(train.to(data.mask.device)), data.select(held.to(data.mask.device))
+    train_prev, held_prev = prev_actions[:, train.to(data.mask.device)], prev_actions[:, held.to(data.mask.device)]
+    scores: dict[int, float] = {}
+    entropies: dict[int, float] = {}
+    for k in range(1, min(max_codes, len(train)) + 1):
+        s = heldout_score(fit(k, train_data, train_prev), held_data, held_prev)
+        scores[k], entropies[k] = s.score, s.entropy
+        print(f"pomil: num_codes auto: K {k}: held-out score {s.score:.4f} per step (gain over K 1: "
+              f"{s.score - scores[1]:+.4f}): mixture log-likelihood {s.log_likelihood:.4f} per step less the codes' "
+              f"posterior entropy, {s.entropy:.3f} nats per episode ({len(train)} training, {len(held)} held-out "
+              "episodes)", file=sys.stderr)
+    choice = NumCodesChoice(choose_num_codes(scores, tolerance, min_gain), scores, entropies)
+    best = max(scores, key=lambda k: (scores[k], -k))
+    why = ("no K scores above K 1" if best == 1 else
+           f"the best K {best} gains {scores[best] - scores[1]:.4f} nats per step over K 1, at most "
+           f"num_codes_min_gain {min_gain:g}" if choice.chosen == 1 else
+           f"the smallest K within num_codes_tolerance {tolerance:g} of the gain from K 1 to the best K {best}")
+    print(f"pomil: num_codes auto: chose K {choice.chosen} ({why})"
+          + (f"; training with {choice.trained} codes, since a single code carries no information"
+             if choice.trained != choice.chosen else ""), file=sys.stderr)
+    return choice

@@ -1,0 +1,241 @@
+"""``--num-codes auto``: the criterion on constructed scores, the held-out score on a mixture
+whose likelihoods are known by hand, the search on constructed policies, and the run's wiring
+(config.json, the log, --resume, and that the run after the search is that of --num-codes K)."""
+
+import csv
+import json
+import math
+
+import pytest
+import torch
+
+from pomil.algos.adversarial import AdversarialConfig, train_adversarial
+from pomil.algos.num_codes import (NumCodesChoice, choose_num_codes, classification_log_likelihood,
+                                   code_posterior_entropy, heldout_score, heldout_split, mixture_log_likelihood,
+                                   search_num_codes)
+from pomil.cli import main
+from pomil.config import from_dict, load_config_file, to_dict
+from pomil.data import PaddedEpisodes
+from pomil.errors import ConfigError
+from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+from pomil.training import load_checkpoint
+
+
+# ------------------------------------------------------------------ criterion
+@pytest.mark.parametrize("scores, chosen", [
+    ({1: -1.0, 2: -0.5, 3: -0.52, 4: -0.51}, 2),  # two modes: more codes only lose
+    ({1: -1.0, 2: -0.8, 3: -0.6, 4: -0.4, 5: -0.41, 6: -0.45}, 4),  # four modes
+    ({1: -0.5, 2: -0.52, 3: -0.6}, 1),  # one mode: every split loses
+    ({1: -0.5, 2: -0.495, 3: -0.51}, 1),  # a gain of 0.005 nats per step is below min_gain 0.01
+    ({1: -1.0, 2: -0.5, 3: -0.5}, 2),  # a tie goes to fewer codes
+    ({1: -1.0}, 1),
+])
+def test_the_criterion_picks_the_true_number_of_modes(scores, chosen):
+    assert choose_num_codes(scores, tolerance=0.05, min_gain=0.01) == chosen
+
+
+def test_the_criterion_takes_the_smallest_k_within_the_tolerance_of_the_whole_gain():
+    # gain 1.0 from K 1 to the best K 3: K 2 is within 0.25 of it at 0.75 exactly, not at 0.74
+    assert choose_num_codes({1: 0.0, 2: 0.75, 3: 1.0}, tolerance=0.25, min_gain=0.0) == 2
+    assert choose_num_codes({1: 0.0, 2: 0.74, 3: 1.0}, tolerance=0.25, min_gain=0.0) == 3
+    assert choose_num_codes({1: 0.0, 2: 0.99, 3: 1.0}, tolerance=0.0, min_gain=0.0) == 3
+    # the same scores shifted or in other units of log-likelihood per step: the same choice
+    assert choose_num_codes({1: -7.0, 2: -6.25, 3: -6.0}, tolerance=0.25, min_gain=0.0) == 2
+    # min_gain: a gain of exactly min_gain is negligible
+    assert choose_num_codes({1: 0.0, 2: 0.5}, tolerance=0.05, min_gain=0.5) == 1
+    assert choose_num_codes({1: 0.0, 2: 0.5}, tolerance=0.05, min_gain=0.25) == 2
+
+
+@pytest.mark.parametrize("scores", [{2: 0.0, 3: 1.0}, {1: 0.0, 3: 1.0}, {1: 0.0, 2: float("nan")}, {}])
+def test_the_criterion_needs_finite_scores_for_k_1_to_k_max(scores):
+    with pytest.raises(ValueError):
+        choose_num_codes(scores, tolerance=0.05, min_gain=0.01)
+
+
+# -------------------------------------------------------------- held-out score
+def test_duplicated_codes_keep_the_mixture_likelihood_and_pay_log_2_of_entropy():
+    p = -10.0
+    one = torch.tensor([[p]])  # one code, one episode
+    dup = torch.tensor([[p], [p]])  # two codes that clone the same mode
+    apart = torch.tensor([[p, p - 1000.0], [p - 1000.0, p]])  # two codes, each for its own episode
+    assert mixture_log_likelihood(one).item() == p
+    assert mixture_log_likelihood(dup).item() == pytest.approx(p)  # log((e^p + e^p) / 2)
+    assert code_posterior_entropy(dup).item() == pytest.approx(math.log(2))
+    assert classification_log_likelihood(dup).item() == pytest.approx(p - math.log(2))
+    assert code_posterior_entropy(apart).tolist() == pytest.approx([0.0, 0.0], abs=1e-12)
+    assert classification_log_likelihood(apart).tolist() == pytest.approx([p - math.log(2)] * 2)
+
+
+def mode_policy(means: list[list[float]], hidden: int = 4) -> GaussianPolicy:
+    """A feed-forward policy whose code k acts N(means[k], 1) whatever it observes: every weight 0 but the
+    code embedding (code k -> means[k], padded with zeros), an identity first mean layer and a last one that
+    reads the first act_dim units (ELU keeps positive means)."""
+    act_dim = len(means[0])
+    policy = GaussianPolicy(PolicyArch(1, act_dim, "mlp", hidden, len(means), log_std_init=0.0))
+    with torch.no_grad():
+        for name, p in policy.named_parameters():
+            if name != "log_std":
+                p.zero_()
+        for k, mean in enumerate(means):
+            policy.code_embed.weight[:act_dim, k] = torch.tensor(mean)
+        policy.mean[0].weight.copy_(torch.eye(hidden))
+        policy.mean[2].weight[:, :act_dim] = torch.eye(act_dim)
+    return policy
+
+
+def episodes(actions: list[list[list[float]]], lengths: list[int]) -> PaddedEpisodes:
+    """Episodes (E lists of T actions) with the given lengths (steps past a length are padding)."""
+    a = torch.tensor(actions).transpose(0, 1)  # (T, E, act_dim)
+    mask = torch.arange(a.shape[0]).unsqueeze(1) < torch.tensor(lengths)
+    return PaddedEpisodes(torch.zeros(a.shape[0], a.shape[1], 1), a, mask)
+
+
+def gaussian_ll(actions: list[list[float]], mean: list[float]) -> float:
+    return sum(-0.5 * sum((x - m) ** 2 for x, m in zip(a, mean)) - 0.5 * len(a) * math.log(2 * math.pi)
+               for a in actions)
+
+
+def test_heldout_score_is_the_classification_likelihood_per_step_of_a_known_mixture():
+    means = [[1.0, 1.0], [3.0, 2.0]]
+    eps = [[[1.0, 1.0], [1.5, 0.5], [9.0, 9.0]],  # mode 0, two steps (the third is padding)
+           [[3.0, 2.0], [2.5, 2.0], [3.0, 3.0]],  # mode 1, three steps
+           [[2.0, 1.5], [2.0, 1.5], [2.0, 1.5]]]  # halfway: both codes alike
+    lengths = [2, 3, 3]
+    data = episodes(eps, lengths)
+    got = heldout_score(mode_policy(means), data, shift_actions(data.actions))
+    ll = torch.tensor([[gaussian_ll(ep[:n], mean) for ep, n in zip(eps, lengths)] for mean in means])
+    q = torch.softmax(ll, 0)
+    expected = ((q * (ll - math.log(2))).sum() / sum(lengths)).item()
+    assert got.score == pytest.approx(expected, rel=1e-5)
+    assert got.log_likelihood == pytest.approx(((torch.logsumexp(ll, 0) - math.log(2)).sum() / 8).item(), rel=1e-5)
+    assert got.entropy == pytest.approx((-(q * q.log()).sum(0)).mean().item(), rel=1e-5)
+    assert q[:, 2].tolist() == pytest.approx([0.5, 0.5], abs=0.01)  # the halfway episode, about log 2 of entropy
+
+
+def test_search_finds_two_modes_with_constructed_fits_and_splits_by_seed(capsys):
+    g = torch.Generator().manual_seed(0)
+    modes = torch.tensor([[0.0, 0.0], [4.0, 4.0]])
+    centre = modes[torch.arange(40) % 2]  # 40 episodes, alternating modes, 5 steps each
+    data = episodes((centre.unsqueeze(1) + torch.randn(40, 5, 2, generator=g)).tolist(), [5] * 40)
+    fits = []
+
+    def fit(k, train, train_prev):  # code j acts at mode j (K 1: between them; K > 2: duplicates)
+        fits.append((k, train.mask.shape[1]))
+        return mode_policy([[2.0, 2.0]] if k == 1 else [modes[j % 2].tolist() for j in range(k)])
+
+    choice = search_num_codes(fit, data, shift_actions(data.actions), max_codes=4, seed=3, tolerance=0.05,
+                              min_gain=0.01)
+    assert fits == [(1, 32), (2, 32), (3, 32), (4, 32)]  # 20% of the episodes held out
+    assert choice.chosen == 2 and choice.trained == 2
+    assert choice.scores[2] > choice.scores[4] > choice.scores[1]  # duplicates pay their entropy
+    assert choice.entropies[2] == pytest.approx(0.0, abs=1e-6)
+    assert choice.entropies[4] == pytest.approx(math.log(2), abs=1e-6)
+    err = capsys.readouterr().err
+    assert err.count("pomil: num_codes auto: K ") == 4 and "pomil: num_codes auto: chose K 2 (" in err
+    train, held = heldout_split(40, seed=3)
+    assert len(held) == 8 and sorted(train.tolist() + held.tolist()) == list(range(40))
+    assert torch.equal(heldout_split(40, seed=3)[1], held) and not torch.equal(heldout_split(40, seed=4)[1], held)
+
+
+def test_a_choice_of_one_trains_two_codes_and_round_trips_through_its_record():
+    choice = NumCodesChoice(1, {1: -0.5, 2: -0.6}, {1: 0.0, 2: 0.69})
+    assert choice.trained == 2
+    record = json.loads(json.dumps(choice.record()))
+    assert record == {"num_codes_chosen": 1, "num_codes_trained": 2, "num_codes_evidence": {"1": -0.5, "2": -0.6},
+                      "num_codes_code_entropy": {"1": 0.0, "2": 0.69}}
+    assert NumCodesChoice.from_record(record) == choice
+    for damaged in (None, {}, {**record, "num_codes_chosen": "2"}, {**record, "num_codes_chosen": 3}):
+        with pytest.raises(ValueError):
+            NumCodesChoice.from_record(damaged)
+
+
+# ---------------------------------------------------------------------- config
+def test_auto_is_read_from_flags_and_json_and_recorded_as_auto(tmp_path):
+    for value in ("auto", "AUTO", " auto"):
+        assert from_dict(AdversarialConfig, {"num_codes": value}).num_codes == 0
+    (tmp_path / "c.json").write_text(json.dumps({"num_codes": "auto", "num_codes_max": 4}))
+    cfg = from_dict(AdversarialConfig, load_config_file(tmp_path / "c.json"))
+    assert (cfg.num_codes, cfg.num_codes_max) == (0, 4)
+    assert to_dict(cfg)["num_codes"] == "auto" and from_dict(AdversarialConfig, to_dict(cfg)) == cfg
+    assert to_dict(AdversarialConfig())["num_codes"] == -1 and to_dict(AdversarialConfig(num_codes=3))["num_codes"] == 3
+    assert from_dict(AdversarialConfig, {"num_codes": "4"}).num_codes == 4
+
+
+@pytest.mark.parametrize("value, text", [
+    ("many", "config key 'num_codes': expected an integer or 'auto', got 'many'"),
+    ("2.5", "config key 'num_codes': expected an integer or 'auto', got '2.5'"),
+    (1, "config key 'num_codes': expected -1 (from the demonstrations), auto or >= 2, got 1"),
+    (-2, "config key 'num_codes': expected an integer in [-1, inf), got -2"),
+])
+def test_other_words_and_numbers_are_refused_in_one_line(value, text):
+    with pytest.raises(ConfigError) as err:
+        from_dict(AdversarialConfig, {"num_codes": value}, source="run.json")
+    assert str(err.value) == f"run.json: {text}"
+
+
+def test_the_flag_refuses_another_word_and_writes_nothing(tmp_path, demos_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "infogail", "--demos", str(demos_path), "--out", "run", "--num-codes", "some"]) == 2
+    assert capsys.readouterr().err == ("pomil: error: config key 'num_codes': expected an integer or 'auto', got "
+                                       "'some'\n")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------ runs
+TINY = ["--num-envs", "4", "--hidden-size", "8", "--bc-init-iterations", "2", "--posterior-init-iterations", "2",
+        "--eval-every", "0", "--critic-steps", "1", "--ppo-epochs", "1", "--no-progress", "--num-codes-max", "3",
+        "--num-codes-search-iterations", "5"]
+
+
+def test_cli_auto_run_records_the_chosen_k_and_its_evidence(demos_path, tmp_path, capsys):
+    out = tmp_path / "auto"
+    assert main(["train", "infogail-pomdp", "--demos", str(demos_path), "--out", str(out), "--num-codes", "auto",
+                 "--iterations", "0", *TINY]) == 0
+    err = capsys.readouterr().err
+    written = json.loads((out / "config.json").read_text())
+    assert written["num_codes"] == "auto" and written["num_codes_max"] == 3
+    scores = {int(k): v for k, v in written["num_codes_evidence"].items()}
+    assert sorted(scores) == [1, 2, 3] and sorted(written["num_codes_code_entropy"]) == ["1", "2", "3"]
+    assert written["num_codes_chosen"] == choose_num_codes(scores, 0.05, 0.01)
+    trained = max(2, written["num_codes_chosen"])
+    assert written["num_codes_trained"] == trained
+    assert load_checkpoint(out / "checkpoint.pt")["policy_arch"]["num_codes"] == trained
+    assert err.count("pomil: num_codes auto: K ") == 3
+    assert f"pomil: num_codes auto: chose K {written['num_codes_chosen']} (" in err
+    with open(out / "metrics.csv", newline="") as f:
+        row = next(csv.DictReader(f))
+    assert row["iteration"] == "0" and float(row["init/num_codes"]) == trained
+    assert float(row["init/num_codes_score_k2"]) == pytest.approx(scores[2])
+
+
+def test_an_auto_run_is_the_run_of_its_k_and_resumes_without_searching(demos_path, tmp_path, capsys):
+    def train(out, num_codes, iterations=1, *more):
+        return main(["train", "infogail-pomdp", "--demos", str(demos_path), "--out", str(out), "--num-codes", num_codes,
+                     "--iterations", str(iterations), "--checkpoint-every", "1", *TINY, *more])
+
+    auto, fixed = tmp_path / "auto", tmp_path / "fixed"
+    assert train(auto, "auto") == 0
+    k = json.loads((auto / "config.json").read_text())["num_codes_trained"]
+    assert train(fixed, str(k)) == 0
+    a, b = load_checkpoint(auto / "checkpoint.pt"), load_checkpoint(fixed / "checkpoint.pt")
+    for net in a["nets"]:  # the search leaves nothing behind: the same networks as --num-codes K
+        for key in a["nets"][net]:
+            assert torch.equal(a["nets"][net][key], b["nets"][net][key]), (net, key)
+    assert a["record"]["num_codes_trained"] == k and "record" not in b
+    capsys.readouterr()
+    assert train(auto, "auto", 2, "--resume") == 0
+    assert "num_codes auto: K" not in capsys.readouterr().err  # no second search
+    resumed = load_checkpoint(auto / "checkpoint.pt")
+    assert resumed["iteration"] == 2 and resumed["record"] == a["record"]
+    assert json.loads((auto / "config.json").read_text())["num_codes_evidence"] == a["record"]["num_codes_evidence"]
+
+
+def test_gail_ignores_auto_and_explicit_runs_record_nothing(demos_path, tmp_path, capsys):
+    cfg = dict(demos=str(demos_path), iterations=0, num_envs=4, hidden_size=8, bc_init_iterations=1, eval_every=0,
+               progress=False, num_codes_search_iterations=1)
+    ckpt = load_checkpoint(train_adversarial(AdversarialConfig(learner="gail", out=str(tmp_path / "g"), num_codes=0,
+                                                               **cfg)))
+    assert ckpt["policy_arch"]["num_codes"] == 0 and "record" not in ckpt
+    assert "num_codes auto" not in capsys.readouterr().err
+    written = json.loads((tmp_path / "g" / "config.json").read_text())
+    assert "num_codes_chosen" not in written
