@@ -145,10 +145,16 @@ def test_hopper_demos_record_plus_merge_reproduce_the_shipped_file():
     shipped = Demonstrations.load(ROOT / "data" / "hopper-paper.npz")
     demos = record_hopper_demos({t: str(ROOT / "data" / "experts" / f"hopper-{t}.pt") for t in ("forward", "backward")},
                                 200)
-    for name in ("observations", "actions", "episode_bounds", "labels", "states"):
+    # the file was recorded on another CPU: MuJoCo's and torch's floats differ in the last bits between CPUs
+    # (measured: up to 8e-7 in the observations), so floats are compared to a tolerance and the rest exactly
+    for name in ("episode_bounds", "labels"):
         np.testing.assert_array_equal(getattr(demos, name), getattr(shipped, name), err_msg=name)
-    for key in ("tasks", "expert_returns", "still_returns", "expert_displacement", "observation_mask", "env_kwargs"):
+    for name in ("observations", "actions", "states"):
+        np.testing.assert_allclose(getattr(demos, name), getattr(shipped, name), rtol=0, atol=1e-4, err_msg=name)
+    for key in ("tasks", "observation_mask", "env_kwargs"):
         assert demos.metadata[key] == shipped.metadata[key], key
+    for key in ("expert_returns", "still_returns", "expert_displacement"):
+        assert demos.metadata[key] == pytest.approx(shipped.metadata[key], rel=1e-4), key
 
 
 def test_cli_any_task_experts_record_merge_train_evaluate(tmp_path):
