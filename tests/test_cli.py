@@ -1,4 +1,5 @@
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -245,6 +246,7 @@ def test_cli_smoke_continuous_codes_demos_train_evaluate_plot(tmp_path):
     assert r.returncode == 0, r.stderr
     m = json.loads(r.stdout)
     assert m["code_dim"] == 1 and len(m["dims"][0]["median_radius"]) == 3 and -1 <= m["spearman"] <= 1
+    assert m["spearman_max"] == pytest.approx(math.sqrt(1 - 3 / 35))  # 3 tied values of 2
     assert m["dims"][0]["code_values"] == pytest.approx([-2 / 3, 0.0, 2 / 3])
     r = pomil("evaluate", run, "--episodes-per-code", 2)
     assert r.returncode == 0 and "Spearman rho(code, fitted radius)" in r.stdout, r.stderr

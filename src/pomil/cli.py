@@ -333,8 +333,9 @@ def _format_code_radius(m: dict[str, Any]) -> str:
              f"{m['values']} code values x {m['episodes_per_value']} episodes  "
              f"{'deterministic' if m['deterministic'] else 'stochastic'}"]
     for d in m["dims"]:
-        lines.append(f"dim {d['dim']}: Spearman rho(code, fitted radius) {d['spearman']:+.3f}   radius covered "
-                     f"{d['radius_covered'][0]:.2f} .. {d['radius_covered'][1]:.2f}")
+        lines.append(f"dim {d['dim']}: Spearman rho(code, fitted radius) {d['spearman']:+.3f} (|rho| at most "
+                     f"{d['spearman_max']:.3f} with these ties)   radius covered {d['radius_covered'][0]:.2f} .. "
+                     f"{d['radius_covered'][1]:.2f}")
         lines.append("  code   " + " ".join(f"{v:6.2f}" for v in d["code_values"]))
         lines.append("  radius " + " ".join(f"{r:6.2f}" for r in d["median_radius"]) + "   (median per code value)")
     return "\n".join(lines)

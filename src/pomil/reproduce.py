@@ -436,10 +436,14 @@ def continuous_table(results: dict[str, Any]) -> str:
                      f"{'yes' if r['success'] else 'no'} | {wall:.0f} |")
     rho = np.abs([r["spearman"] for r in runs])
     r1, r2 = results["radius_range"]
+    settings = (f"the settings of {results['config']['adversarial_config']}" if results["config"]["adversarial_config"]
+                else "its default settings")
     lines += ["", f"{results['learner']}, code_kind continuous ({results['code_prior']} prior, {results['code_dim']} "
-              f"dim), otherwise its default settings. |rho| {rho.mean():.3f} ± {rho.std():.3f} over "
+              f"dim), otherwise {settings}. |rho| {rho.mean():.3f} ± {rho.std():.3f} over "
               f"{len(runs)} seeds; {sum(r['success'] for r in runs)}/{len(runs)} seeds with |rho| >= "
-              f"{CONTINUOUS_SUCCESS}. Each seed: {results['code_values']} code values evenly over the prior, "
+              f"{CONTINUOUS_SUCCESS}; the largest |rho| these tied code values allow (no two code values' radii "
+              f"overlap) is {runs[0].get('spearman_max', float('nan')):.3f}. Each seed: {results['code_values']} "
+              f"code values evenly over the prior, "
               f"{results['episodes_per_value']} stochastic rollouts each, a least-squares circle fitted to every "
               f"trajectory. Demonstrations: radius uniform in [{r1:g}, {r2:g}] (their middle 89% spans "
               f"{r1 + (r2 - r1) / 18:.2f} .. {r2 - (r2 - r1) / 18:.2f}, the range the code values' quantiles "

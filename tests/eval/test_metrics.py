@@ -51,5 +51,7 @@ def test_spearman_exact_values_with_and_without_ties():
     # ties: x = (0, 0, 1, 1) ranks (0.5, 0.5, 2.5, 2.5); y ranks (0, 1, 2, 3): rho = 4 / sqrt(4 * 5)
     assert spearman([0, 0, 1, 1], [1, 2, 3, 4]) == pytest.approx(4 / math.sqrt(20))
     assert spearman([1, 1, 1], [1, 2, 3]) == 0.0
+    # 9 tied values of 20 against untied ranks: the largest rho possible, sqrt(1 - (20^2 - 1) / (180^2 - 1))
+    assert spearman(np.repeat(np.arange(9), 20), np.arange(180)) == pytest.approx(math.sqrt(1 - 399 / 32399))
     with pytest.raises(ValueError, match="spearman"):
         spearman([1, 2], [1, np.nan])

@@ -3,14 +3,16 @@
 Per iteration:
 
 1. **Rollout**: N episodes, each with a latent code c ~ Uniform{0..K-1}
-   fixed for the episode (one-hot into the policy).
+   fixed for the episode (one-hot into the policy); continuous codes
+   (``code_kind``): c in R^d from ``code_prior``, into the policy as it is.
 2. **Critic**: ``critic_steps`` updates on expert vs. policy sequences.
    Wasserstein (the paper): maximise E_expert[f] - E_policy[f], weights
    clipped to +-``weight_clip`` (RMSProp, as in the text), or a gradient
    penalty (Adam).  GAN (Ho & Ermon's GAIL): logistic loss, expert = 1.
    pomil's critic score f is "higher = more expert-like"; the paper's
    D_omega is -f, so its policy reward -D is our f.
-3. **Posterior**: cross-entropy of the episode's code under P(c | b(tau; psi), a_t).
+3. **Posterior**: cross-entropy of the episode's code under P(c | b(tau; psi), a_t)
+   (continuous codes: -log N(c; mu, sigma) of a diagonal Gaussian, ``pomil.nn.codes``).
 4. **Reward** r_t = norm(f_t) + lambda1 * log P(c | b_t, a_t), where norm
    standardises the critic term over the batch (zero mean, unit std).  Why:
    a weight-clipped critic's scores are ~1e-3 and drift in scale as it

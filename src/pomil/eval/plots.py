@@ -132,18 +132,19 @@ def code_radius_figure(rollouts_path: str | Path, path: str | Path, max_paths: i
         paths(axes[1], data[f"{seeds[0]}/positions"], data[f"{seeds[0]}/code_values"], "code value",
               f"policy, {seeds[0]}")
     ax = axes[2]
+    top = 1.5 * float(data["experts/radii"].max())  # straight paths fit huge radii: clipped
     for i, s in enumerate(seeds):
         c, rad = data[f"{s}/code_values"], data[f"{s}/radii"]
         colour = COLOURS[i % len(COLOURS)]
         jitter = (np.random.default_rng(i).random(len(c)) - 0.5) * 0.03
-        ax.scatter(c + jitter, np.clip(rad, 0, 15), s=5, alpha=0.35, color=colour)
+        ax.scatter(c + jitter, np.clip(rad, 0, top), s=5, alpha=0.35, color=colour)
         values = np.unique(c)
         ax.plot(values, [np.median(rad[c == v]) for v in values], color=colour, marker="o", label=s)
     lo, hi = np.percentile(data["experts/radii"], [0, 100])
     ax.axhspan(lo, hi, color="grey", alpha=0.12, label="demonstrations' radii")
-    ax.set_ylim(0, 15)
+    ax.set_ylim(0, top)
     ax.set_xlabel("code value")
-    ax.set_ylabel("fitted radius (clipped to 15)")
+    ax.set_ylabel(f"fitted radius (clipped to {top:.1f})")
     ax.set_title("code value vs fitted radius", fontsize=10)
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
