@@ -170,3 +170,10 @@ def test_default_continuous_warm_start_maps_the_code_monotonically_to_the_radius
     assert abs(metrics["spearman"]) >= 0.9
     lo, hi = metrics["radius_covered"]
     assert lo < 4.0 and hi > 6.0
+
+
+def test_principal_components_of_a_single_episode_are_zero_codes_not_nan(radius_demos):
+    one = radius_demos.padded("cpu").select(torch.tensor([0]))
+    scores = principal_components(one, 2)
+    assert scores.shape == (1, 2) and torch.equal(scores, torch.zeros(1, 2))
+    assert EpisodeCodes(one, 2, "gaussian").codes.abs().max() == 0  # the prior's median

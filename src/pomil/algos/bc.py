@@ -265,11 +265,11 @@ def principal_components(data: PaddedEpisodes, dim: int) -> torch.Tensor:
     m = data.mask.unsqueeze(-1).to(data.observations.dtype)
     x = (torch.cat([data.observations, data.actions], -1) * m).transpose(0, 1).flatten(1)  # (E, T * (obs + act))
     x = x - x.mean(0)
-    x = x / x.std(0).clamp_min(1e-8)
+    x = x / x.std(0, correction=0).clamp_min(1e-8)  # constant columns (one episode, unused steps) stay 0
     u, s, _ = torch.linalg.svd(x.double(), full_matrices=False)
     scores = (u[:, :dim] * s[:dim]).to(x.dtype)
     if scores.shape[1] < dim:  # fewer components than dimensions (tiny sets): zeros, spread by index
-        scores = torch.cat([scores, torch.zeros(len(scores), dim - scores.shape[1])], 1)
+        scores = torch.cat([scores, scores.new_zeros(len(scores), dim - scores.shape[1])], 1)
     return scores
 
 
