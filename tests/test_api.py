@@ -163,3 +163,53 @@ def test_nan_observations_are_refused_under_python_O(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines() == ["refused: observations must be finite; rows [1] hold NaN/inf (state unchanged)",
                                      "refused: num_envs must be a positive integer, got 0"]
+
+
+def _continuous_policy(dim=2, prior="uniform"):
+    torch.manual_seed(0)
+    arch = PolicyArch(2, 2, "gru", 16, dim, code_kind="continuous", code_prior=prior)
+    return TrainedPolicy(GaussianPolicy(arch), "test", {"id": "pomil/Circles-v0", "kwargs": {}})
+
+
+def test_continuous_codes_are_float_arrays_that_select_behaviour():
+    p = _continuous_policy()
+    assert (p.num_codes, p.code_dim, p.code_prior) == (0, 2, "uniform")
+    obs = np.zeros((3, 2), np.float32)
+    p.reset(3, codes=np.array([[-1.0, 0.0], [0.0, 0.0], [1.0, 0.5]], np.float32))
+    a = p.act(obs, deterministic=True)
+    assert not np.allclose(a[0], a[2])
+    p.reset(3, codes=torch.tensor([[-1.0, 0.0], [0.0, 0.0], [1.0, 0.5]]))
+    np.testing.assert_allclose(p.act(obs, deterministic=True), a, atol=1e-6)
+    p.reset(2, codes=[[0, 1], [1, 0]])  # integers are numbers too
+    p.reset(4)  # default: the prior's quantiles, low to high, in every dimension
+    assert p._codes[:, 0].tolist() == [-0.75, -0.25, 0.25, 0.75] and torch.equal(p._codes[:, 0], p._codes[:, 1])
+
+
+@pytest.mark.parametrize("codes, text", [
+    ([0, 1, 0], r"codes must be a \(3, 2\) array of finite numbers \(this policy has a continuous code\), got shape"),
+    ([[0.0], [1.0], [2.0]], r"got shape \(3, 1\)"),
+    ([[0.0, np.nan], [1.0, 0], [2.0, 0]], "got NaN/inf"),
+    ([["a", "b"]] * 3, "got dtype"),
+    ([[True, False]] * 3, "got dtype bool"),
+])
+def test_continuous_codes_of_the_wrong_kind_or_shape_are_errors(codes, text):
+    p = _continuous_policy()
+    with pytest.raises(PomilError, match=text):
+        p.reset(3, codes=codes)
+
+
+def test_discrete_policy_refuses_continuous_codes_by_name():
+    p = _policy(num_codes=2)
+    assert p.code_dim == 0 and p.code_prior is None
+    with pytest.raises(PomilError, match=r"this policy has 2 discrete codes\), got an array of shape \(2, 1\)"):
+        p.reset(2, codes=[[0.5], [0.1]])
+
+
+def test_continuous_policy_saves_and_loads_its_code_kind_and_old_archs_load_as_discrete(tmp_path):
+    p = _continuous_policy(1, "gaussian")
+    p.save(tmp_path / "c.pt")
+    q = TrainedPolicy.load(tmp_path / "c.pt")
+    assert (q.code_dim, q.code_prior, q.num_codes) == (1, "gaussian", 0)
+    d = PolicyArch(2, 2, "gru", 16, 3).to_dict()
+    assert "code_kind" not in d and "code_prior" not in d  # discrete checkpoints as before continuous codes
+    assert PolicyArch(**d).code_kind == "discrete"

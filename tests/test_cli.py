@@ -1,4 +1,5 @@
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -227,3 +228,51 @@ def test_infogail_pomdp_with_the_policys_input_view_trains_resumes_and_loads(tmp
     assert policy.act([[0.1, 0.2]] * 2).shape == (2, 2)
     assert main(["train", "infogail-pomdp", *flags, *TINY_ADVERSARIAL, "--iterations", "2", "--resume"]) == 0
     assert load_checkpoint(out / "checkpoint.pt")["iteration"] == 2
+
+
+def test_cli_smoke_continuous_codes_demos_train_evaluate_plot(tmp_path):
+    demos = tmp_path / "r.npz"
+    r = pomil("demos", "circles", "--modes", "one", "--radius-range", "3,7", "--episodes", 24, "--out", demos)
+    assert r.returncode == 0, r.stderr
+    assert "radius uniform in [3, 7]" in r.stdout
+    run = tmp_path / "igp"
+    r = pomil("train", "infogail-pomdp", "--demos", demos, "--code-kind", "continuous", "--out", run,
+              "--iterations", 1, "--num-envs", 6, "--hidden-size", 8, "--bc-init-iterations", 3,
+              "--posterior-init-iterations", 2, "--critic-batch", 6, "--eval-episodes", 2, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    saved = json.loads((run / "config.json").read_text())
+    assert (saved["code_kind"], saved["code_dim"], saved["code_prior"]) == ("continuous", 1, "uniform")
+    r = pomil("evaluate", run, "--episodes-per-code", 2, "--code-values", 3, "--json")
+    assert r.returncode == 0, r.stderr
+    m = json.loads(r.stdout)
+    assert m["code_dim"] == 1 and len(m["dims"][0]["median_radius"]) == 3 and -1 <= m["spearman"] <= 1
+    assert m["spearman_max"] == pytest.approx(math.sqrt(1 - 3 / 35))  # 3 tied values of 2
+    assert m["dims"][0]["code_values"] == pytest.approx([-2 / 3, 0.0, 2 / 3])
+    r = pomil("evaluate", run, "--episodes-per-code", 2)
+    assert r.returncode == 0 and "Spearman rho(code, fitted radius)" in r.stdout, r.stderr
+    r = pomil("plot", run, "--demos", demos, "--out", tmp_path / "f.png", "--episodes-per-code", 2)
+    assert r.returncode == 0, r.stderr
+    r = pomil("train", "infogail", "--demos", demos, "--code-kind", "continuous", "--num-codes", 3, "--out",
+              tmp_path / "bad")
+    assert r.returncode == 2 and "config key 'num_codes': discrete codes only" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
+    r = pomil("demos", "circles", "--radius-range", "7,3", "--out", tmp_path / "x.npz")
+    assert r.returncode == 2 and "config key 'radius_range'" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_reproduce_circles_continuous_tiny_writes_metrics_table_and_figure(tmp_path):
+    out = tmp_path / "results"
+    (tmp_path / "adv.json").write_text(json.dumps({"bc_init_iterations": 3, "num_envs": 6, "hidden_size": 8,
+                                                   "posterior_init_iterations": 2, "eval_every": 0}))
+    r = pomil("reproduce", "circles-continuous", "--seeds", 2, "--adversarial-iterations", 1,
+              "--adversarial-config", tmp_path / "adv.json", "--demo-episodes", 20, "--code-values", 3,
+              "--episodes-per-value", 2, "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz",
+              "--no-progress")
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert len(metrics["runs"]) == 2 and metrics["radius_range"] == [3.0, 7.0]
+    assert metrics["adversarial_settings"]["code_kind"] == "continuous"
+    assert metrics["summary"]["successes"] == sum(abs(r["spearman"]) >= 0.9 for r in metrics["runs"])
+    assert "| 1 |" in (out / "table.md").read_text()
+    assert (out / "figure.png").stat().st_size > 1000
+    assert TrainedPolicy.load(out / "infogail-pomdp.pt").code_dim == 1

@@ -110,3 +110,25 @@ def test_a_run_whose_worker_is_killed_resumes_from_its_checkpoint_on_retry(tmp_p
     elapsed = [float(r["time/elapsed_s"]) for r in rows]
     restarts = [i for i in range(1, len(rows)) if elapsed[i] < elapsed[i - 1]]
     assert len(restarts) == 1 and int(rows[restarts[0]]["iteration"]) > 100, output  # resumed, past iteration 100
+
+
+def test_sweep_of_continuous_codes_reports_the_code_radius_correlation(tmp_path):
+    from pomil.demos import record_circles_demos
+    from pomil.envs.circles import make_spec
+
+    demos = tmp_path / "r.npz"
+    record_circles_demos(make_spec("one"), 16, seed=0, radius_range=(3.0, 7.0)).save(demos)
+    config = tmp_path / "sweep.json"
+    config.write_text(json.dumps({"learner": "infogail", "demos": str(demos), "iterations": 1, "num_envs": 4,
+                                  "bc_init_iterations": 2, "posterior_init_iterations": 1, "eval_every": 0,
+                                  "hidden_size": 8, "code_kind": "continuous"}))
+    out = tmp_path / "sweep"
+    r = pomil("sweep", config, "--no-ray", "--seeds", 1, "--grid", "code_prior=uniform,gaussian", "--out", out,
+              "--episodes-per-code", 2)
+    assert r.returncode == 0, r.stderr
+    data = json.loads((out / "sweep.json").read_text())
+    for setting in ("code_prior=uniform", "code_prior=gaussian"):
+        s = data["summary"][setting]
+        assert s["kind"] == "code-radius" and s["seeds"] == 1 and 0 <= s["abs_spearman"][0] <= 1
+    assert data["runs"]["code_prior=gaussian seed 0"]["metrics"]["code_prior"] == "gaussian"
+    assert "| code_prior=uniform | 1 |" in (out / "table.md").read_text()

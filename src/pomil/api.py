@@ -7,7 +7,10 @@
 
 The policy keeps its own recurrent state and previous action between
 ``act`` calls; ``reset`` starts new episodes.  Codes are ignored by learners
-that have none (behaviour cloning, GAIL).
+that have none (behaviour cloning, GAIL).  A policy with continuous codes
+(``--code-kind continuous``) takes an (N, d) float array instead:
+
+>>> policy.reset(num_envs=3, codes=[[-1.0], [0.0], [1.0]])   # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import torch
 
 from pomil.envs import executed_actions_fn
 from pomil.errors import InvalidArgument, PomilError
+from pomil.nn.codes import code_vectors, prior_grid
 from pomil.nn.normalize import RunningNorm
 from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.training import load_checkpoint, resolve_device, save_checkpoint
@@ -87,8 +91,18 @@ class TrainedPolicy:
 
     @property
     def num_codes(self) -> int:
-        """Number of latent codes (0 for learners without codes)."""
-        return self.policy.arch.num_codes
+        """Number of discrete latent codes (0 for learners without codes and for continuous codes)."""
+        return 0 if self.policy.arch.continuous_codes else self.policy.arch.num_codes
+
+    @property
+    def code_dim(self) -> int:
+        """Dimension d of a continuous code (0 for discrete codes and learners without codes)."""
+        return self.policy.arch.num_codes if self.policy.arch.continuous_codes else 0
+
+    @property
+    def code_prior(self) -> str | None:
+        """The prior of a continuous code (``uniform`` on [-1, 1]^d or ``gaussian``), None otherwise."""
+        return self.policy.arch.code_prior if self.code_dim else None
 
     @property
     def obs_dim(self) -> int:
@@ -101,7 +115,9 @@ class TrainedPolicy:
     def reset(self, num_envs: int, codes: Sequence[int] | np.ndarray | torch.Tensor | None = None,
               seed: int | None = None) -> None:
         """Start ``num_envs`` episodes.  ``codes``: one code per episode
-        (default: 0, 1, ..., K-1, 0, 1, ...); ignored without codes.  Bad arguments raise
+        (default: 0, 1, ..., K-1, 0, 1, ...); for continuous codes an (num_envs, d) array of
+        finite numbers (default: the prior's quantiles at (i + 0.5) / num_envs in every
+        dimension, low to high); ignored without codes.  Bad arguments raise
         :class:`pomil.errors.InvalidArgument` (a ValueError) naming the argument."""
         num_envs = _count("num_envs", num_envs)
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
@@ -109,6 +125,9 @@ class TrainedPolicy:
         c = None
         if self.num_codes > 0:
             c = torch.arange(num_envs) % self.num_codes if codes is None else self._codes_arg(codes, num_envs)
+        elif self.code_dim > 0:
+            c = (prior_grid(self.policy.arch.code_prior, num_envs).unsqueeze(1).expand(-1, self.code_dim)
+                 if codes is None else self._continuous_codes_arg(codes, num_envs))
         self._n = num_envs
         self._h = self.policy.initial_state(num_envs, self.device)
         self._prev = torch.zeros(num_envs, self.act_dim, device=self.device)
@@ -120,7 +139,7 @@ class TrainedPolicy:
             self._gen.seed()
         self._codes = None
         if c is not None:
-            self._codes = torch.nn.functional.one_hot(c, self.num_codes).float().to(self.device)
+            self._codes = code_vectors(c, self.policy.arch.code_kind, self.policy.arch.num_codes).to(self.device)
 
     def _codes_arg(self, codes: Any, num_envs: int) -> torch.Tensor:
         """``codes`` as a (num_envs,) long tensor: integers only (no truncated floats, strings or bools)."""
@@ -130,11 +149,30 @@ class TrainedPolicy:
             raise InvalidArgument(f"codes must be {num_envs} integers in [0, {self.num_codes}), "
                                   f"got {codes!r}") from None
         want = f"codes must be {num_envs} integers in [0, {self.num_codes})"
+        if arr.ndim == 2:
+            raise InvalidArgument(f"{want} (this policy has {self.num_codes} discrete codes), got an array of shape "
+                                  f"{arr.shape}")
         if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
             raise InvalidArgument(f"{want}, got {np.asarray(arr).tolist()!r} (dtype {arr.dtype})")
         if arr.shape != (num_envs,) or arr.min() < 0 or arr.max() >= self.num_codes:
             raise InvalidArgument(f"{want}, got {arr.tolist()}")
         return torch.as_tensor(arr, dtype=torch.long)
+
+    def _continuous_codes_arg(self, codes: Any, num_envs: int) -> torch.Tensor:
+        """``codes`` as a (num_envs, d) float tensor of finite numbers (no bools or strings)."""
+        d = self.code_dim
+        want = f"codes must be a ({num_envs}, {d}) array of finite numbers (this policy has a continuous code)"
+        try:
+            arr = codes.detach().cpu().numpy() if isinstance(codes, torch.Tensor) else np.asarray(codes)
+        except ValueError:  # ragged lists
+            raise InvalidArgument(f"{want}, got {codes!r:.80}") from None
+        if arr.dtype == np.bool_ or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise InvalidArgument(f"{want}, got dtype {arr.dtype}")
+        if arr.shape != (num_envs, d):
+            raise InvalidArgument(f"{want}, got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise InvalidArgument(f"{want}, got NaN/inf")
+        return torch.as_tensor(arr, dtype=torch.float32)
 
     @torch.no_grad()
     def act(self, observations: np.ndarray | torch.Tensor, deterministic: bool = False) -> np.ndarray | torch.Tensor:

@@ -68,8 +68,12 @@ def config_from_args(cls: type, args: argparse.Namespace) -> Any:
 class CirclesDemosConfig:
     out: str = option("data/circles.npz", "output .npz file (written atomically)")
     episodes: int = option(400, "episodes in total, split equally between the modes", within="[1, inf)")
-    modes: Literal["two", "four"] = option("two", "circles preset: two (the paper's) or four")
+    modes: Literal["one", "two", "four"] = option("two", "circles preset: one (anti-clockwise around (0, r)), two "
+                                                         "(the paper's) or four")
     radius: float = option(5.0, "radius of every circle", within="(0, inf)")
+    radius_range: tuple[float, ...] = option((), "R1,R2: each episode's circle gets its own radius, uniform in "
+                                                 "[R1, R2] (same tangent and direction; for continuous codes); "
+                                                 "the environment's circles take the middle radius", within="(0, inf)")
     episode_length: int = option(33, "steps per episode (33 = one loop of a radius-5 circle)", within="[1, inf)")
     history: int = option(1, "positions observed per step: 1 = position only (the POMDP); k = last k positions",
                           within="[1, inf)")
@@ -84,15 +88,23 @@ def cmd_demos(args: argparse.Namespace) -> int:
     from pomil.demos import record_circles_demos
 
     cfg: CirclesDemosConfig = config_from_args(CirclesDemosConfig, args)
+    radius_range = None
+    if cfg.radius_range:
+        if len(cfg.radius_range) != 2 or cfg.radius_range[0] > cfg.radius_range[1]:
+            raise PomilError(f"config key 'radius_range': expected two radii R1,R2 with R1 <= R2, got "
+                             f"{','.join(map(str, cfg.radius_range))}")
+        radius_range = (float(cfg.radius_range[0]), float(cfg.radius_range[1]))
     try:
-        spec = make_spec(cfg.modes, cfg.radius, cfg.episode_length, cfg.history, cfg.action_type)
-        demos = record_circles_demos(spec, cfg.episodes, cfg.noise_std, cfg.seed)
+        radius = cfg.radius if radius_range is None else sum(radius_range) / 2
+        spec = make_spec(cfg.modes, radius, cfg.episode_length, cfg.history, cfg.action_type)
+        demos = record_circles_demos(spec, cfg.episodes, cfg.noise_std, cfg.seed, radius_range)
     except ValueError as err:
         raise PomilError(f"demos circles: {err}") from None
     demos.save(cfg.out)
     rets = ", ".join(f"mode {k}: {v:.2f}" for k, v in demos.metadata["expert_returns"].items())
+    radii = "" if radius_range is None else f", radius uniform in [{radius_range[0]:g}, {radius_range[1]:g}]"
     print(f"wrote {cfg.out}: {demos.num_episodes} episodes x {spec.episode_length} steps, "
-          f"{spec.num_modes} modes (mean expert return {rets})")
+          f"{spec.num_modes} modes{radii} (mean expert return {rets})")
     return 0
 
 
@@ -296,15 +308,37 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
+    if args.code_values < 2:
+        raise PomilError(f"--code-values must be >= 2, got {args.code_values}")
     policy = TrainedPolicy.load(args.checkpoint)
     demos = matching_demos(args.demos, [(args.checkpoint, policy)]) if args.demos else None
     if env_family(policy.env.get("id", "")).evaluation != "circles":
         return _evaluate_tasks(policy, args, demos)
     if demos is not None:
         print("pomil: note: --demos matches the checkpoint but circles evaluation does not use it", file=sys.stderr)
+    if policy.code_dim:
+        from pomil.eval.circles import evaluate_code_radius
+
+        metrics, _ = evaluate_code_radius(policy, args.code_values, args.episodes_per_code, args.seed,
+                                          args.deterministic)
+        print(json.dumps(metrics, indent=2) if args.json else _format_code_radius(metrics))
+        return 0
     metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, args.deterministic, args.none_threshold)
     print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
     return 0
+
+
+def _format_code_radius(m: dict[str, Any]) -> str:
+    lines = [f"algo {m['algo']}  continuous code, {m['code_dim']} dim(s), {m['code_prior']} prior  "
+             f"{m['values']} code values x {m['episodes_per_value']} episodes  "
+             f"{'deterministic' if m['deterministic'] else 'stochastic'}"]
+    for d in m["dims"]:
+        lines.append(f"dim {d['dim']}: Spearman rho(code, fitted radius) {d['spearman']:+.3f} (|rho| at most "
+                     f"{d['spearman_max']:.3f} with these ties)   radius covered {d['radius_covered'][0]:.2f} .. "
+                     f"{d['radius_covered'][1]:.2f}")
+        lines.append("  code   " + " ".join(f"{v:6.2f}" for v in d["code_values"]))
+        lines.append("  radius " + " ".join(f"{r:6.2f}" for r in d["median_radius"]) + "   (median per code value)")
+    return "\n".join(lines)
 
 
 def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
@@ -331,6 +365,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from pomil.envs import env_family
     from pomil.eval.circles import rollout_circles
     from pomil.eval.plots import figure1
+    from pomil.nn.codes import prior_grid
 
     panels = []
     policies = [(ckpt, TrainedPolicy.load(ckpt)) for ckpt in args.checkpoints]
@@ -353,8 +388,15 @@ def cmd_plot(args: argparse.Namespace) -> int:
         pos = pos[:, 1:]
         panels.append(("experts", pos, demos.labels, "mode"))
     for ckpt, policy in policies:
-        roll = rollout_circles(policy, args.episodes_per_code, args.seed, args.deterministic)
-        panels.append((f"{policy.algo}: {Path(ckpt).parent.name or ckpt}", roll["positions"], roll["codes"], "code"))
+        codes = None
+        if policy.code_dim:  # continuous: 5 code values over the prior in the first dimension, the rest at 0
+            codes = np.zeros((5 * args.episodes_per_code, policy.code_dim), dtype=np.float32)
+            codes[:, 0] = np.repeat(np.arange(5), args.episodes_per_code)
+            codes[:, 0] = prior_grid(policy.code_prior, 5).numpy()[codes[:, 0].astype(int)]
+        roll = rollout_circles(policy, args.episodes_per_code, args.seed, args.deterministic, codes)
+        groups = roll["codes"] if codes is None else np.repeat(np.arange(5), args.episodes_per_code)
+        panels.append((f"{policy.algo}: {Path(ckpt).parent.name or ckpt}", roll["positions"], groups,
+                       "code" if codes is None else "code value #"))
     if not panels:
         raise PomilError("plot: give at least one checkpoint or --demos")
     figure1(panels, args.out)
@@ -364,8 +406,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from pomil.reproduce import (
-        CirclesModesConfig, CirclesReproConfig, HopperReproConfig, reproduce_circles, reproduce_circles_modes,
-        reproduce_hopper,
+        CirclesContinuousConfig, CirclesModesConfig, CirclesReproConfig, HopperReproConfig, reproduce_circles,
+        reproduce_circles_continuous, reproduce_circles_modes, reproduce_hopper,
     )
 
     if args.experiment == "tasks":
@@ -380,6 +422,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         reproduce_hopper(config_from_args(HopperReproConfig, args))
     elif args.experiment == "circles-modes":
         reproduce_circles_modes(config_from_args(CirclesModesConfig, args))
+    elif args.experiment == "circles-continuous":
+        reproduce_circles_continuous(config_from_args(CirclesContinuousConfig, args))
     else:
         reproduce_circles(config_from_args(CirclesReproConfig, args))
     return 0
@@ -461,7 +505,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("evaluate",
                         help="roll a checkpoint out: mode metrics (circles) or per-task scores (other tasks)")
     ev.add_argument("checkpoint", help="checkpoint.pt (or its run directory)")
-    ev.add_argument("--episodes-per-code", type=int, default=100, help="rollouts per latent code (default: 100)")
+    ev.add_argument("--episodes-per-code", type=int, default=100, help="rollouts per latent code (default: 100; "
+                                                                       "continuous codes: per code value)")
+    ev.add_argument("--code-values", type=int, default=9, help="continuous codes: code values evenly over the "
+                                                               "prior, per dimension (default: 9)")
     ev.add_argument("--seed", type=int, default=0, help="rollout seed (default: 0)")
     ev.add_argument("--deterministic", action="store_true", help="act with the policy mean instead of sampling")
     ev.add_argument("--none-threshold", type=float, default=1.0,
@@ -491,7 +538,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(sw, SweepConfig)
     sw.set_defaults(func=cmd_sweep)
 
-    from pomil.reproduce import CirclesModesConfig, CirclesReproConfig, HopperReproConfig
+    from pomil.reproduce import CirclesContinuousConfig, CirclesModesConfig, CirclesReproConfig, HopperReproConfig
 
     rp = sub.add_parser("reproduce", help="run a paper experiment end to end")
     rp_sub = rp.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
@@ -503,6 +550,11 @@ def build_parser() -> argparse.ArgumentParser:
                                                  "success counts and per-seed figures")
     add_config_flags(rm, CirclesModesConfig)
     rm.set_defaults(func=cmd_reproduce)
+    rcc = rp_sub.add_parser("circles-continuous",
+                            help="InfoGAIL-POMDP with a continuous code on circles whose radius varies, over seeds: "
+                                 "Spearman rho between code and fitted radius, table and figure")
+    add_config_flags(rcc, CirclesContinuousConfig)
+    rcc.set_defaults(func=cmd_reproduce)
     rh = rp_sub.add_parser("hopper",
                            help="Figure 2c: every learner over seeds on the shipped Hopper demos, table and curves")
     add_config_flags(rh, HopperReproConfig)

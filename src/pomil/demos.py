@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
@@ -12,13 +14,20 @@ from pomil.errors import PomilError
 
 
 def record_circles_demos(
-    spec: CirclesSpec, episodes: int, noise_std: float = DEFAULT_EXPERT_NOISE, seed: int = 0
+    spec: CirclesSpec, episodes: int, noise_std: float = DEFAULT_EXPERT_NOISE, seed: int = 0,
+    radius_range: tuple[float, float] | None = None,
 ) -> Demonstrations:
     """Equal numbers of episodes from every mode's expert, in shuffled order.
 
     Labels (the mode of each episode) and full states (positions) are kept for
     evaluation only.  ``episodes`` must be a positive multiple of the number
     of modes so that the mix is exactly balanced.
+
+    ``radius_range`` (r1, r2): each episode follows its mode's circle with a radius of its own,
+    drawn uniformly in [r1, r2] (same tangent at the origin, same direction): demonstrations
+    whose radius varies continuously, for continuous codes.  The radii are kept for evaluation
+    only (metadata ``episode_radii``); the environment's circles (its diagnostic reward) stay
+    those of ``spec``.
     """
     k = spec.num_modes
     if episodes < 1 or episodes % k:
@@ -26,12 +35,19 @@ def record_circles_demos(
     gen = torch.Generator().manual_seed(seed)
     modes = (torch.arange(episodes) % k)[torch.randperm(episodes, generator=gen)]
     env = CirclesVecEnv(spec, episodes)
-    experts = CircleExperts(spec, noise_std)
+    experts, expert_modes, radii = CircleExperts(spec, noise_std), modes, None
+    if radius_range is not None:
+        r1, r2 = radius_range
+        if not (0 < r1 <= r2 and np.isfinite(r2)):
+            raise ValueError(f"radius_range must be two radii 0 < r1 <= r2, got {radius_range}")
+        radii = r1 + (r2 - r1) * torch.rand(episodes, generator=gen, dtype=torch.float64)
+        own = tuple(spec.circles[int(m)].with_radius(float(r)) for m, r in zip(modes, radii))
+        experts, expert_modes = CircleExperts(replace(spec, circles=own), noise_std), torch.arange(episodes)
     obs = env.reset()
     observations, actions, states = [], [], []
     ret = torch.zeros(episodes)
     for _ in range(spec.episode_length):
-        act = experts.act(env.positions, modes, gen)
+        act = experts.act(env.positions, expert_modes, gen)
         observations.append(obs)
         states.append(env.positions.clone())
         actions.append(act)
@@ -54,6 +70,8 @@ def record_circles_demos(
             "source": f"pomil scripted circle experts, noise_std={noise_std}, seed={seed}",
             "expert_returns": expert_returns,
             "label_names": [f"mode{m}" for m in range(k)],
+            **({} if radii is None else {"radius_range": [float(r1), float(r2)],
+                                         "episode_radii": [round(float(r), 6) for r in radii]}),
         },
     )
 

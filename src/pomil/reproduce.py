@@ -10,6 +10,11 @@ purity, modes covered, NMI), and writes into ``--out``::
     rollouts.npz   the trajectories the figure is drawn from
     infogail-pomdp.pt   the InfoGAIL-POMDP policy of seed 0 (policy only)
 
+``pomil reproduce circles-continuous`` records circles whose radius varies
+continuously, trains InfoGAIL-POMDP with a continuous code over seeds and
+measures how the code maps to the fitted radius (Spearman's rho): metrics.json,
+table.md, figure.png, rollouts.npz.
+
 ``pomil reproduce hopper`` records the Hopper demonstrations from the shipped
 experts if missing, trains every learner for every seed on them, scores each
 task for the code matched to it (normalised return, progress score,
@@ -114,9 +119,9 @@ def train_learner(cfg: Any, name: str, seed: int, run_dir: Path) -> Path:
                          resume=resume)
 
 
-def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: str | None = None):
+def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: str | None = None, **own: Any):
     """The defaults, then the user's --adversarial-config file, then this run's own fields
-    (``demos``: default the reproduction's ``demos_file``)."""
+    (``demos``: default the reproduction's ``demos_file``; ``own``: the experiment's, e.g. code_kind)."""
     from pomil.algos.adversarial import AdversarialConfig
     from pomil.config import from_dict, load_config_file
 
@@ -125,7 +130,7 @@ def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: 
     if cfg.adversarial_config:
         values.update(load_config_file(cfg.adversarial_config))
     values.update(demos=demos or cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress,
-                  **LEARNERS[learner].fixed)  # the learner's name: its kind, and an ablation's part taken away
+                  **LEARNERS[learner].fixed, **own)  # the learner's name: its kind, an ablation's part taken away
     return from_dict(AdversarialConfig, values, source=cfg.adversarial_config or "the reproduction's settings")
 
 
@@ -359,6 +364,148 @@ def reproduce_circles_modes(cfg: CirclesModesConfig) -> dict[str, Any]:
     atomic_write(out / "table.md", lambda f: f.write(table.encode()))
     print(table)
     print(f"wrote {out}/metrics.json, table.md in {results['wall_time_s']:.0f} s")
+    return results
+
+
+# ========================================================== circles-continuous
+CONTINUOUS_SUCCESS = 0.9
+"""A seed succeeds when |Spearman rho| between code value and fitted radius is at least this (issue 19)."""
+
+
+@dataclass(frozen=True)
+class CirclesContinuousConfig(RayOptions):
+    out: str = option("runs/results/circles-continuous", "results directory (metrics.json, table.md, figure.png); "
+                                                         "the committed results are results/circles-continuous")
+    runs: str = option("runs/circles-continuous", "where each run's checkpoint and logs go")
+    demos: str = option("runs/circles-continuous/demos.npz",
+                        "demonstrations; recorded if missing (one circle, radius uniform in radius_range, seed 0)")
+    radius_range: tuple[float, ...] = option((3.0, 7.0), "R1,R2: the demonstrations' radii, uniform in [R1, R2]",
+                                             within="(0, inf)")
+    demo_episodes: int = option(400, "demonstration episodes when they are recorded", within="[1, inf)")
+    seeds: int = option(3, "training seeds (0 .. seeds-1)", within="[1, inf)")
+    learner: Literal["infogail", "infogail-pomdp"] = option("infogail-pomdp", "the learner, with its default "
+                                                                              "settings and code_kind continuous")
+    adversarial_iterations: int = option(0, "training iterations (0: AdversarialConfig's default)", within="[0, inf)")
+    adversarial_config: str = option("", "JSON file of AdversarialConfig settings that replace the defaults "
+                                         "(code_dim, code_prior, ...)")
+    code_values: int = option(9, "evaluation: code values evenly over the prior", within="[2, inf)")
+    episodes_per_value: int = option(20, "evaluation: stochastic rollouts per code value", within="[1, inf)")
+    progress: bool = option(True, "show progress bars")
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        if len(self.radius_range) != 2 or self.radius_range[0] > self.radius_range[1]:
+            raise ValueError(f"radius_range: expected two radii R1,R2 with R1 <= R2, got {self.radius_range}")
+
+
+def _continuous_job(cfg: CirclesContinuousConfig, learner: str, seed: int) -> dict[str, Any]:
+    from pomil.algos.adversarial import train_adversarial
+    from pomil.eval.circles import evaluate_code_radius
+
+    print(f"[{learner}] seed {seed}: training", flush=True)
+    t0 = time.perf_counter()
+    ckpt = train_adversarial(adversarial_config(cfg, learner, seed, Path(cfg.runs) / learner / f"seed{seed}",
+                                                demos=cfg.demos, code_kind="continuous"))
+    wall = time.perf_counter() - t0
+    metrics, roll = evaluate_code_radius(TrainedPolicy.load(ckpt), cfg.code_values, cfg.episodes_per_value,
+                                         seed=1000 + seed)
+    metrics.update(checkpoint=str(ckpt), train_seed=seed, success=abs(metrics["spearman"]) >= CONTINUOUS_SUCCESS,
+                   warm_start_spearman=_warm_start_value(ckpt.parent / "metrics.csv", "eval/spearman"))
+    return {"metrics": metrics, "wall_s": wall, "positions": roll["positions"], "code_values": roll["code_values"],
+            "radii": roll["radii"]}
+
+
+def _warm_start_value(csv_path: Path, key: str) -> float | None:
+    """``key`` in a run's metrics.csv at iteration 0 (the evaluation after the warm start), None when not logged."""
+    import csv
+
+    if not csv_path.exists():
+        return None
+    rows = [r for r in csv.DictReader(open(csv_path, newline="")) if r.get("iteration") == "0" and r.get(key)]
+    return float(rows[0][key]) if rows else None
+
+
+def continuous_table(results: dict[str, Any]) -> str:
+    runs = results["runs"]
+    lines = ["| seed | Spearman rho(code, radius) | after the warm start | median radius per code value, low .. high "
+             "| success | wall s |", "|---|---|---|---|---|---|"]
+    for r, wall in zip(runs, results["wall_s"]):
+        lo, hi = r["radius_covered"]
+        warm = "-" if r.get("warm_start_spearman") is None else f"{r['warm_start_spearman']:+.3f}"
+        lines.append(f"| {r['train_seed']} | {r['spearman']:+.3f} | {warm} | {lo:.2f} .. {hi:.2f} | "
+                     f"{'yes' if r['success'] else 'no'} | {wall:.0f} |")
+    rho = np.abs([r["spearman"] for r in runs])
+    r1, r2 = results["radius_range"]
+    settings = (f"the settings of {results['config']['adversarial_config']}" if results["config"]["adversarial_config"]
+                else "its default settings")
+    lines += ["", f"{results['learner']}, code_kind continuous ({results['code_prior']} prior, {results['code_dim']} "
+              f"dim), otherwise {settings}. |rho| {rho.mean():.3f} ± {rho.std():.3f} over "
+              f"{len(runs)} seeds; {sum(r['success'] for r in runs)}/{len(runs)} seeds with |rho| >= "
+              f"{CONTINUOUS_SUCCESS}; the largest |rho| these tied code values allow (no two code values' radii "
+              f"overlap) is {runs[0].get('spearman_max', float('nan')):.3f}. Each seed: {results['code_values']} "
+              f"code values evenly over the prior, "
+              f"{results['episodes_per_value']} stochastic rollouts each, a least-squares circle fitted to every "
+              f"trajectory. Demonstrations: radius uniform in [{r1:g}, {r2:g}] (their middle 89% spans "
+              f"{r1 + (r2 - r1) / 18:.2f} .. {r2 - (r2 - r1) / 18:.2f}, the range the code values' quantiles "
+              f"cover). Total wall time {results['wall_time_s']:.0f} s."]
+    return "\n".join(lines) + "\n"
+
+
+def reproduce_circles_continuous(cfg: CirclesContinuousConfig) -> dict[str, Any]:
+    """Continuous codes on circles whose radius varies: code against fitted radius over seeds."""
+    from pomil.eval.plots import code_radius_figure
+
+    t_start = time.perf_counter()
+    path = Path(cfg.demos)
+    radius_range = (float(cfg.radius_range[0]), float(cfg.radius_range[1]))
+    if not path.exists():
+        demos = record_circles_demos(make_spec("one", sum(radius_range) / 2), cfg.demo_episodes, seed=0,
+                                     radius_range=radius_range)
+        demos.save(path)
+        print(f"recorded {path}: {demos.num_episodes} expert episodes, radius uniform in {list(radius_range)}")
+    demos = Demonstrations.load(path)
+    if "episode_radii" not in demos.metadata or demos.states is None:
+        raise PomilError(f"{path}: field 'metadata.episode_radii': expected circles demonstrations of varying radius "
+                         "(pomil demos circles --radius-range R1,R2)")
+
+    def report(r, n, total) -> None:
+        m = r.value["metrics"]
+        print(f"[{n}/{total}] {r.name}: Spearman rho {m['spearman']:+.3f}, radius {m['radius_covered'][0]:.2f} .. "
+              f"{m['radius_covered'][1]:.2f}{'' if m['success'] else ' (below target)'} ({r.wall_s:.0f} s)",
+              flush=True)
+
+    done = _run_all(cfg, _continuous_job, report, names=(cfg.learner,))
+    runs = [done[cfg.learner, s]["metrics"] for s in range(cfg.seeds)]
+    settings = adversarial_config(cfg, cfg.learner, 0, Path("."), demos=cfg.demos, code_kind="continuous")
+    results: dict[str, Any] = {
+        "experiment": "circles-continuous", "config": to_dict(cfg), "learner": cfg.learner, "seeds": cfg.seeds,
+        "demos": str(path), "radius_range": demos.metadata.get("radius_range", list(radius_range)),
+        "code_dim": settings.code_dim, "code_prior": settings.code_prior, "code_values": cfg.code_values,
+        "episodes_per_value": cfg.episodes_per_value, "success_criterion": {"abs_spearman": CONTINUOUS_SUCCESS},
+        "adversarial_settings": {k: v for k, v in to_dict(settings).items()
+                                 if k not in ("learner", "out", "seed", "progress")},
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform()},
+        "runs": runs, "wall_s": [done[cfg.learner, s]["wall_s"] for s in range(cfg.seeds)],
+    }
+    rho = np.abs([r["spearman"] for r in runs])
+    results["summary"] = {"abs_spearman": [float(rho.mean()), float(rho.std())],
+                          "successes": int(sum(r["success"] for r in runs))}
+    out = Path(cfg.out)
+    T = int(demos.episode_lengths[0])
+    rollouts = {"experts/positions": demos.states.reshape(demos.num_episodes, T, -1)[:, 1:, :2],
+                "experts/radii": np.asarray(demos.metadata["episode_radii"], dtype=np.float64)}
+    for s in range(cfg.seeds):
+        for key in ("positions", "code_values", "radii"):
+            rollouts[f"seed{s}/{key}"] = done[cfg.learner, s][key]
+    TrainedPolicy.load(runs[0]["checkpoint"]).save(out / f"{cfg.learner}.pt")
+    results["wall_time_s"] = time.perf_counter() - t_start
+    write_json(out / "metrics.json", results)
+    table = continuous_table(results)
+    atomic_write(out / "table.md", lambda f: f.write(table.encode()))
+    atomic_write(out / "rollouts.npz", lambda f: np.savez_compressed(f, **rollouts))
+    code_radius_figure(out / "rollouts.npz", out / "figure.png")
+    print(table)
+    print(f"wrote {out}/metrics.json, table.md, figure.png in {results['wall_time_s']:.0f} s")
     return results
 
 

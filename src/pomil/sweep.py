@@ -87,7 +87,12 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
                               "checkpoint": str(ckpt)}
     demos = Demonstrations.load(cfg.demos)
     kind = evaluation_kind(policy.env.get("id", ""), demos.metadata)
-    if kind == "circles":
+    if kind == "circles" and policy.code_dim:  # continuous codes: code against fitted radius
+        from pomil.eval.circles import evaluate_code_radius
+
+        metrics, _ = evaluate_code_radius(policy, episodes_per_value=episodes_per_code, seed=1000 + seed)
+        result.update(kind="code-radius", metrics=metrics)
+    elif kind == "circles":
         from pomil.eval.circles import evaluate_circles
 
         metrics, roll = evaluate_circles(policy, episodes_per_code, seed=1000 + seed)
@@ -177,6 +182,12 @@ def _summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     kind = runs[0]["kind"]
     if kind == "circles":
         return {"kind": kind, "seeds": len(runs), **summarise([r["metrics"] for r in runs])}
+    if kind == "code-radius":
+        from pomil.reproduce import CONTINUOUS_SUCCESS
+
+        rho = np.abs([r["metrics"]["spearman"] for r in runs])
+        return {"kind": kind, "seeds": len(runs), "abs_spearman": [float(rho.mean()), float(rho.std())],
+                "successes": int((rho >= CONTINUOUS_SUCCESS).sum())}
     if kind == "tasks":
         tasks = list(runs[0]["metrics"]["tasks"])
         return {"kind": kind, "seeds": len(runs), "tasks": task_summary([r["metrics"] for r in runs], tasks)}
@@ -192,6 +203,13 @@ def sweep_table(data: dict[str, Any]) -> str:
         lines += ["| setting | seeds | " + " | ".join(SUMMARY_KEYS) + " |", "|---|---|" + "---|" * len(SUMMARY_KEYS)]
         for name, s in data["summary"].items():
             cells = [f"{s[k][0]:.2f} ± {s[k][1]:.2f}" if s["seeds"] else "-" for k in SUMMARY_KEYS]
+            lines.append(f"| {name} | {s['seeds']} | " + " | ".join(cells) + " |")
+    elif "code-radius" in kinds:
+        lines += ["| setting | seeds | abs Spearman(code, radius) | seeds with abs Spearman >= 0.9 |",
+                  "|---|---|---|---|"]
+        for name, s in data["summary"].items():
+            cells = ([f"{s['abs_spearman'][0]:.3f} ± {s['abs_spearman'][1]:.3f}", str(s["successes"])] if s["seeds"]
+                     else ["-", "-"])
             lines.append(f"| {name} | {s['seeds']} | " + " | ".join(cells) + " |")
     elif "tasks" in kinds:
         tasks = next(list(s["tasks"]) for s in data["summary"].values() if s["seeds"])

@@ -165,3 +165,39 @@ def test_executed_actions_are_what_the_environment_carries_out():
     ang = executed_actions_fn("pomil/Circles-v0",
                               {"action_type": "angle"})(torch.tensor([[0.5], [0.5 + 2 * math.pi], [-3 * math.pi / 2]]))
     torch.testing.assert_close(ang, torch.tensor([[0.5], [0.5], [math.pi / 2]]))
+
+
+def test_fit_circles_recovers_centre_and_radius_of_points_on_a_circle_through_the_origin():
+    from pomil.envs.circles import fit_circles
+
+    angles = np.linspace(-np.pi / 2, np.pi, 20)[1:]  # from the origin (angle -pi/2 around (0, 3)) onwards
+    on = np.stack([3 * np.cos(angles), 3 + 3 * np.sin(angles)], -1)
+    big = np.stack([np.linspace(1, 5, 10), 0.01 * np.linspace(1, 5, 10) ** 2], -1)  # nearly straight
+    centres, radii = fit_circles(np.stack([on, on[::-1] * [1, -1]])[:, :, :])
+    np.testing.assert_allclose(radii, [3.0, 3.0], atol=1e-9)
+    np.testing.assert_allclose(centres, [[0.0, 3.0], [0.0, -3.0]], atol=1e-9)
+    assert fit_circles(big[None])[1][0] > 40
+
+
+def test_radius_range_demos_follow_their_own_circle_with_the_same_tangent_and_direction():
+    from pomil.demos import record_circles_demos
+    from pomil.envs.circles import fit_circles
+
+    d = record_circles_demos(make_spec("one", 5.0), 40, noise_std=0.0, seed=1, radius_range=(3.0, 7.0))
+    radii = np.asarray(d.metadata["episode_radii"])
+    assert d.metadata["radius_range"] == [3.0, 7.0] and radii.shape == (40,)
+    assert 3.0 <= radii.min() and radii.max() <= 7.0 and radii.max() - radii.min() > 2.5
+    pos = d.states.reshape(40, 33, 2)[:, 1:]
+    centres, fitted = fit_circles(pos)
+    np.testing.assert_allclose(fitted, radii, rtol=1e-4)  # noise-free experts stay exactly on their circle
+    np.testing.assert_allclose(centres[:, 0], 0.0, atol=1e-3)
+    assert (d.actions.reshape(40, 33, 2)[:, 0, 0] > 0).all()  # anti-clockwise around (0, r): first step to +x
+    assert d.metadata["env_kwargs"]["circles"] == [[0.0, 5.0, 5.0, 1]]
+    with pytest.raises(ValueError, match="radius_range"):
+        record_circles_demos(make_spec("one"), 4, radius_range=(5.0, 2.0))
+
+
+def test_circle_with_radius_keeps_tangent_and_direction():
+    c = Circle.through_origin(210, 5.0, -1).with_radius(2.0)
+    assert c.radius == 2.0 and c.direction == -1
+    assert c.center == pytest.approx((2.0 * math.cos(math.radians(210)), 2.0 * math.sin(math.radians(210))))

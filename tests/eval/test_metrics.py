@@ -38,3 +38,20 @@ def test_mode_metrics_on_a_constructed_case():
 def test_codes_on_the_same_mode_cover_one():
     m = mode_metrics(np.array([0, 0, 1, 1]), np.array([1, 1, 1, 1]), 2, 2)
     assert m["modes_covered"] == 1 and m["nmi"] == 0.0
+
+
+def test_spearman_exact_values_with_and_without_ties():
+    from pomil.eval.metrics import average_ranks, spearman
+
+    assert spearman([1, 2, 3, 4], [10, 20, 30, 400]) == pytest.approx(1.0)
+    assert spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    # ranks x: 0 1 2 3, y: 1 0 3 2 -> centred products 1.5*0.5 + 0.5*1.5 + 0.5*1.5 + 1.5*0.5 -> rho = 0.6
+    assert spearman([1, 2, 3, 4], [2, 1, 4, 3]) == pytest.approx(0.6)
+    assert average_ranks(np.array([5.0, 1.0, 5.0, np.inf])).tolist() == [1.5, 0.0, 1.5, 3.0]
+    # ties: x = (0, 0, 1, 1) ranks (0.5, 0.5, 2.5, 2.5); y ranks (0, 1, 2, 3): rho = 4 / sqrt(4 * 5)
+    assert spearman([0, 0, 1, 1], [1, 2, 3, 4]) == pytest.approx(4 / math.sqrt(20))
+    assert spearman([1, 1, 1], [1, 2, 3]) == 0.0
+    # 9 tied values of 20 against untied ranks: the largest rho possible, sqrt(1 - (20^2 - 1) / (180^2 - 1))
+    assert spearman(np.repeat(np.arange(9), 20), np.arange(180)) == pytest.approx(math.sqrt(1 - 399 / 32399))
+    with pytest.raises(ValueError, match="spearman"):
+        spearman([1, 2], [1, np.nan])

@@ -3,14 +3,16 @@
 Per iteration:
 
 1. **Rollout**: N episodes, each with a latent code c ~ Uniform{0..K-1}
-   fixed for the episode (one-hot into the policy).
+   fixed for the episode (one-hot into the policy); continuous codes
+   (``code_kind``): c in R^d from ``code_prior``, into the policy as it is.
 2. **Critic**: ``critic_steps`` updates on expert vs. policy sequences.
    Wasserstein (the paper): maximise E_expert[f] - E_policy[f], weights
    clipped to +-``weight_clip`` (RMSProp, as in the text), or a gradient
    penalty (Adam).  GAN (Ho & Ermon's GAIL): logistic loss, expert = 1.
    pomil's critic score f is "higher = more expert-like"; the paper's
    D_omega is -f, so its policy reward -D is our f.
-3. **Posterior**: cross-entropy of the episode's code under P(c | b(tau; psi), a_t).
+3. **Posterior**: cross-entropy of the episode's code under P(c | b(tau; psi), a_t)
+   (continuous codes: -log N(c; mu, sigma) of a diagonal Gaussian, ``pomil.nn.codes``).
 4. **Reward** r_t = norm(f_t) + lambda1 * log P(c | b_t, a_t), where norm
    standardises the critic term over the batch (zero mean, unit std).  Why:
    a weight-clipped critic's scores are ~1e-3 and drift in scale as it
@@ -44,8 +46,8 @@ from typing import Any, Callable, ClassVar, Iterator, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import (MixtureAssignment, bc_step, demo_batch, demo_nll, episodes_within, first_step_starts,
-                            fit_log_std, most_likely_codes)
+from pomil.algos.bc import (EpisodeCodes, MixtureAssignment, bc_step, coded_bc_step, demo_batch, demo_nll,
+                            episodes_within, first_step_starts, fit_log_std, most_likely_codes)
 from pomil.algos.num_codes import NumCodesChoice, search_num_codes
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs
@@ -55,6 +57,7 @@ from pomil.envs import SIM_HELP, default_num_codes, evaluation_kind, executed_ac
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import ConfigError, PomilError
 from pomil.nn import heads
+from pomil.nn.codes import code_log_likelihood, gaussian_params, sample_prior
 from pomil.nn.heads import BeliefHead
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.rl.gae import gae
@@ -129,6 +132,13 @@ class AdversarialConfig(RunConfig):
     num_codes_min_gain: float = option(0.01, "with num_codes auto: K 1 (then trained with 2 codes) when the best K's "
                                              "held-out score is at most this many nats per step above K 1's",
                                        within="[0, inf)")
+    code_kind: Literal["discrete", "continuous"] = option(
+        "discrete", "latent codes: discrete (one of num_codes, one-hot) or continuous (c in R^code_dim from "
+                    "code_prior, a Gaussian posterior: InfoGAIL's continuous c; docs/method.md); ignored by gail")
+    code_dim: int = option(1, "with code_kind continuous: the code's dimension d", within="[1, inf)")
+    code_prior: Literal["uniform", "gaussian"] = option(
+        "uniform", "with code_kind continuous: the prior codes are drawn from, uniform on [-1, 1]^d or a standard "
+                   "gaussian")
     hidden_size: int = option(128, "dense width and recurrent cells (attention: model width) of every network",
                               within="[1, inf)")
     belief_encoder: Literal["gru", "lstm", "attention"] = option(
@@ -196,12 +206,16 @@ class AdversarialConfig(RunConfig):
     bc_init_fit_log_std: bool = option(False, "end the warm start by setting the log std to its maximum-likelihood "
                                               "value given the means: each action dimension's mean squared error on "
                                               "all demonstrations (weighted by the codes' responsibilities)")
+    bc_init_code_lr_scale: float = option(10.0, "continuous codes with bc_init_codes mixture: the warm start's "
+                                                "learning rate of the episodes' own codes, as a multiple of "
+                                                "bc_init_lr", within="(0, inf)")
     bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step and BC-term batch (at most "
                                     "max_batch_steps)", within="[1, inf)")
     bc_init_codes: Literal["random", "mixture"] = option("mixture",
                                                          "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes "
-                                                         "(mixture likelihood)")
+                                                         "(mixture likelihood; continuous codes: each episode's own "
+                                                         "code, fitted with the policy and spread as the prior)")
     mixture_balance: Literal["dataset", "batch"] = option("dataset",
                                                           "with bc_init_codes mixture: every code takes 1/K of "
                                                           "all demonstration episodes (dataset, refreshed every 10 "
@@ -250,6 +264,14 @@ class AdversarialConfig(RunConfig):
         if self.num_codes == 1:
             raise ConfigError("config key 'num_codes': expected -1 (from the demonstrations), auto or >= 2, got "
                               f"{self.num_codes}")
+        if self.code_kind == "continuous" and self.num_codes != -1:
+            given = "auto" if self.num_codes == NUM_CODES_AUTO else self.num_codes
+            raise ConfigError(f"config key 'num_codes': discrete codes only, got {given} with code_kind continuous "
+                              "(its size is code_dim)")
+        if self.code_kind == "discrete" and (self.code_dim != 1 or self.code_prior != "uniform"):
+            key = "code_dim" if self.code_dim != 1 else "code_prior"
+            raise ConfigError(f"config key {key!r}: continuous codes only (set code_kind continuous), got "
+                              f"{getattr(self, key)!r} with code_kind discrete")
 
 
 @dataclass
@@ -404,12 +426,13 @@ def critic_loss(
     return loss, stats
 
 
-def posterior_loss(post: BeliefHead, batch: Rollout,
-                   code_idx_steps: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
-    """Masked cross-entropy of each step's code; code_idx_steps (T, B)."""
-    return _code_cross_entropy(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts,
-                               batch.mask,
-                               code_idx_steps)
+def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tensor,
+                   code_kind: str = "discrete") -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked negative log-likelihood of each step's code: code_idx_steps (T, B) code indices
+    (cross-entropy), or continuous codes (T, B, d) (Gaussian, :func:`_code_gaussian_nll`)."""
+    code_nll = _code_cross_entropy if code_kind == "discrete" else _code_gaussian_nll
+    return code_nll(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts, batch.mask,
+                    code_idx_steps)
 
 
 def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, mask,
@@ -421,9 +444,22 @@ def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, ma
     return loss, {"posterior/loss": loss.item(), "posterior/accuracy": acc.item()}
 
 
+def _code_gaussian_nll(post: BeliefHead, obs, prev_actions, actions, starts, mask,
+                       codes_steps) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked mean of -log N(c; mu(b_t), sigma(b_t)) over the steps; codes_steps (T, B, d)."""
+    out, _ = post.unroll(obs, prev_actions, post.initial_state(obs.shape[1], obs.device), starts, extra=actions)
+    loss = masked_mean(-code_log_likelihood(out, codes_steps, "continuous"), mask)
+    mean, log_std = gaussian_params(out)
+    err = masked_mean((mean - codes_steps).abs().mean(-1), mask)
+    return loss, {"posterior/loss": loss.item(), "posterior/code_error": err.item(),
+                  "posterior/log_std": masked_mean(log_std.mean(-1), mask).item()}
+
+
 @torch.no_grad()
 def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig,
             objective: str) -> tuple[torch.Tensor, dict[str, float]]:
+    """r_t = norm(f_t) + lambda1 log P(c | b_t, a_t); ``code_idx`` (N,) code indices, or (N, d)
+    continuous codes (log N(c; mu, sigma), see :func:`pomil.nn.codes.code_log_likelihood`)."""
     dev = roll.starts.device
     f, _ = m.critic.unroll(roll.observations, roll.prev_actions, m.critic.initial_state(roll.num_envs, dev),
                            roll.starts, extra=roll.executed_actions)
@@ -436,8 +472,8 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
         logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions,
                                        m.posterior.initial_state(roll.num_envs, dev),
                                        roll.starts, extra=roll.executed_actions)
-        code_steps = code_idx.view(1, -1, 1).expand(logits.shape[0], -1, 1)
-        logq = torch.log_softmax(logits, -1).gather(-1, code_steps).squeeze(-1)
+        logq = code_log_likelihood(logits, code_idx.unsqueeze(0).expand(logits.shape[0], *code_idx.shape),
+                                   cfg.code_kind)
         r = r + cfg.mi_weight * logq
         stats["reward/log_posterior"] = logq.mean().item()
     stats["reward/total"] = r.mean().item()
@@ -449,7 +485,8 @@ def policy_arch(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: i
     """The policy of a run with ``num_codes`` codes."""
     enc = cfg.belief_encoder if LEARNER_KINDS[cfg.learner]["recurrent"] else "mlp"
     return PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean,
-                      cfg.attention_context, cfg.policy_obs_delta, cfg.policy_prev_action)
+                      cfg.attention_context, cfg.policy_obs_delta, cfg.policy_prev_action, cfg.code_kind,
+                      cfg.code_prior)
 
 
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
@@ -466,8 +503,8 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes:
         policy=policy,
         value=value,
         critic=heads.critic(obs_dim, act_dim, heads_enc, cfg.hidden_size, ctx).to(device),
-        posterior=(heads.posterior(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx).to(device)
-                   if num_codes else None),
+        posterior=(heads.posterior(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx,
+                                   cfg.code_kind).to(device) if num_codes else None),
     )
     if cfg.belief == "shared":  # one belief b_t for all four; each loss's own optimiser steps it
         m.critic.encoder = policy.encoder
@@ -482,9 +519,12 @@ NUM_CODES_AUTO = 0
 
 def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
     """The run's number of codes: 0 without codes, the configured K, or (-1) the demonstrations'
-    modes; ``num_codes auto`` is chosen by :func:`auto_num_codes` instead."""
+    modes; ``num_codes auto`` is chosen by :func:`auto_num_codes` instead.  Continuous codes: their
+    dimension d (the width of the code input, as K is for one-hot codes)."""
     if not LEARNER_KINDS[cfg.learner]["codes"]:
         return 0
+    if cfg.code_kind == "continuous":
+        return cfg.code_dim
     if cfg.num_codes == NUM_CODES_AUTO:
         raise ValueError("num_codes auto is chosen from the demonstrations by auto_num_codes")
     if cfg.num_codes > 0:
@@ -513,6 +553,7 @@ class AdversarialRun:
     num_codes: int
     guard: DivergenceGuard | None = None
     assignment: MixtureAssignment | None = None  # the BC term's code per demonstration episode (whole-set balance)
+    episode_codes: EpisodeCodes | None = None  # continuous codes, bc_init_codes mixture: each demo episode's own code
 
     @property
     def objective(self) -> str:
@@ -520,8 +561,18 @@ class AdversarialRun:
 
     @property
     def mixture(self) -> bool:
-        """The warm start's and the BC term's likelihood: the codes' mixture (else random codes)."""
-        return self.cfg.bc_init_codes == "mixture" and self.num_codes > 0
+        """The warm start's and the BC term's likelihood: the discrete codes' mixture (else random
+        codes, or continuous codes: each episode's own, ``episode_codes``)."""
+        return self.cfg.bc_init_codes == "mixture" and self.num_codes > 0 and self.cfg.code_kind == "discrete"
+
+    def demo_codes(self, idx: torch.Tensor) -> torch.Tensor | None:
+        """The BC term's continuous codes for demonstration episodes ``idx``: each episode's own
+        (``episode_codes``), or random ones from the prior; None for discrete codes."""
+        if self.cfg.code_kind != "continuous" or not self.num_codes:
+            return None
+        if self.episode_codes is not None:
+            return self.episode_codes.codes[idx].detach()
+        return sample_prior(self.cfg.code_prior, len(idx), self.num_codes, self.gen).to(idx.device)
 
     def check(self, it: int, quantity: str, x: float | torch.Tensor) -> None:
         if self.guard is not None:
@@ -571,10 +622,10 @@ def update_posterior(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor,
     """``posterior_steps`` passes of the code's cross-entropy over the rollout ({} without codes)."""
     if run.m.posterior is None:
         return {}
-    code_steps = code_idx.unsqueeze(0).expand(roll.num_steps, -1)
+    code_steps = code_idx.unsqueeze(0).expand(roll.num_steps, *code_idx.shape)
     for _ in range(run.cfg.posterior_steps):
         for batch_idx, batch in run.sampler.posterior(roll, code_steps, run.gen):
-            loss, s = posterior_loss(run.m.posterior, batch, batch_idx)
+            loss, s = posterior_loss(run.m.posterior, batch, batch_idx, run.cfg.code_kind)
             run.check(it, "posterior loss", s["posterior/loss"])
             run.step(it, "posterior", loss, run.m.posterior.parameters)
     return s
@@ -640,7 +691,8 @@ def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
     )
     if cfg.bc_weight > 0:
         resp = run.assignment.update(m.policy)[:, demo_idx] if run.assignment is not None else None
-        bc, bc_stats = demo_nll(m.policy, demo_feats, demo, run.gen, run.num_codes, run.mixture, resp)
+        bc, bc_stats = demo_nll(m.policy, demo_feats, demo, run.gen, run.num_codes, run.mixture, resp,
+                                run.demo_codes(demo_idx))
         loss = loss + cfg.bc_weight * bc
         s["ppo/bc_nll"] = bc_stats["bc/nll"]
     run.check(it, "policy loss (PPO)", s["ppo/policy_loss"])
@@ -719,12 +771,18 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch "
                   f"has {cfg.num_envs} minibatches of one episode", file=sys.stderr)
         nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
+        episode_codes = None
+        if cfg.code_kind == "continuous" and num_codes and cfg.bc_init_codes == "mixture":
+            episode_codes = EpisodeCodes(expert, num_codes, cfg.code_prior).to(loop.device)
+            nets["episode_codes"] = episode_codes  # the BC term's codes, kept for --resume
         if not loop.start(env=env_info, nets=nets, optimizers=opt, record=choice.record() if choice else None):
             return loop.ckpt_path
         expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
         run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
-                             shift_actions(expert.actions), execute, num_codes, loop.guard)
-        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard)
+                             shift_actions(expert.actions), execute, num_codes, loop.guard,
+                             episode_codes=episode_codes)
+        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
+                                    episode_codes)
                       if loop.iteration == 0 and cfg.bc_init_iterations > 0 else {})
         run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
@@ -789,7 +847,8 @@ def sized_for_episodes(cfg: AdversarialConfig, episode_steps: int) -> Adversaria
     return replace(cfg, **cut)
 
 
-KEY_STATS = ("eval/nmi", "eval/mean_purity", "env/true_return", "posterior/accuracy", "critic/wasserstein")
+KEY_STATS = ("eval/nmi", "eval/spearman", "eval/mean_purity", "env/true_return", "posterior/accuracy",
+             "critic/wasserstein")
 
 
 def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, it: int) -> dict[str, float]:
@@ -798,7 +857,8 @@ def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, i
     cfg, m = run.cfg, run.m
     with clock("rollout"):
         roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
-                                                           run.gen, loop.device, cfg.rollout_threads)
+                                                           run.gen, loop.device, cfg.rollout_threads, cfg.code_kind,
+                                                           cfg.code_prior)
         stats = {"env/true_return": env_rewards.sum(0).mean().item()}
         run.check(it, "environment reward", stats["env/true_return"])
         loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
@@ -836,8 +896,8 @@ def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_pr
 
 
 def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
-                  cfg: AdversarialConfig, gen: torch.Generator,
-                  guard: DivergenceGuard | None = None) -> dict[str, float]:
+                  cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
+                  episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
 
     Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
@@ -846,7 +906,12 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     ``mixture`` (``bc_init_codes = "mixture"`` and a policy with codes) the policy maximises the
     demonstrations' likelihood under a uniform mixture of its codes, so each code clones
     its own cluster of episodes; the posterior then learns, on the demonstrations, to
-    tell each episode's most likely code from its steps (``posterior_init_iterations``)."""
+    tell each episode's most likely code from its steps (``posterior_init_iterations``).
+    Continuous codes (``code_kind``): random codes from the prior, or with ``episode_codes``
+    each episode's own code, fitted with the policy (:func:`clone_with_continuous_codes`); the
+    posterior then learns those codes."""
+    if cfg.code_kind == "continuous" and num_codes:
+        return _continuous_warm_start(m, expert, expert_prev, cfg, gen, guard, episode_codes)
     stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
     if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = most_likely_codes(m.policy, expert, expert_prev)
@@ -865,6 +930,65 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
             post_opt.step()
         stats.update(s)
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
+
+
+def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: AdversarialConfig,
+                           gen: torch.Generator, guard: DivergenceGuard | None,
+                           episode_codes: EpisodeCodes | None) -> dict[str, float]:
+    """:func:`bc_warm_start` for continuous codes."""
+    stats = clone_with_continuous_codes(m.policy, expert, expert_prev, cfg, gen, guard, episode_codes)
+    if episode_codes is not None and m.posterior is not None and cfg.posterior_init_iterations > 0:
+        codes = episode_codes.codes.detach()
+        stats["bc/code_spread"] = codes.std(0).mean().item()
+        post_opt = torch.optim.Adam(m.posterior.parameters(), lr=cfg.bc_init_lr)
+        starts = first_step_starts(expert.mask)
+        for _ in range(cfg.posterior_init_iterations):
+            idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
+            loss, s = _code_gaussian_nll(m.posterior, expert.observations[:, idx], expert_prev[:, idx],
+                                         expert.actions[:, idx], starts[:, idx], expert.mask[:, idx],
+                                         codes[idx].expand(expert.mask.shape[0], -1, -1))
+            if guard is not None:
+                guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
+            post_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            post_opt.step()
+        stats.update(s)
+    return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
+
+
+CODE_SPREAD_EVERY = 10
+"""Warm-start steps between moves of the episodes' continuous codes onto the prior (EpisodeCodes.spread_)."""
+
+
+def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor,
+                                cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
+                                episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
+    """The warm start's behaviour cloning with continuous codes: each episode under a random code
+    from the prior (InfoGAIL), or under its own code in ``episode_codes``, fitted with the policy
+    (its own learning rate, bc_init_code_lr_scale x bc_init_lr) and spread as the prior every
+    ``CODE_SPREAD_EVERY`` steps and at the end; then the log std's fit (``bc_init_fit_log_std``)."""
+    opt, decay = warm_start_optimizer(policy, cfg, episode_codes)
+    if episode_codes is not None:
+        codes_of = lambda idx: episode_codes.codes[idx]  # noqa: E731
+    else:
+        codes_of = lambda idx: sample_prior(cfg.code_prior, len(idx), policy.arch.num_codes,  # noqa: E731
+                                            gen).to(idx.device)
+    stats: dict[str, float] = {}
+    for step in range(1, cfg.bc_init_iterations + 1):
+        stats = coded_bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of)
+        decay.step()
+        if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
+            episode_codes.spread_()
+        if guard is not None:
+            at = f"warm-start step {step}"
+            guard.value(at, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
+            guard.grads(at, "warm-start policy", policy.parameters())
+            guard.params(at, {"warm-start policy": policy})
+    if cfg.bc_init_fit_log_std:
+        codes = (episode_codes.codes.detach() if episode_codes is not None
+                 else codes_of(torch.arange(expert.mask.shape[1], device=expert.mask.device)))
+        stats.update(fit_log_std(policy, expert, expert_prev, codes=codes))
+    return stats
 
 
 def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
@@ -889,26 +1013,36 @@ def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_
     return stats
 
 
-def warm_start_optimizer(policy: GaussianPolicy,
-                         cfg: AdversarialConfig) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
-    """Adam over the policy, its log std at ``bc_init_log_std_lr_scale`` times ``bc_init_lr``, and
-    the schedule to step after each update: linear decay to 0 over the warm start (``bc_init_lr_decay``)."""
+def warm_start_optimizer(policy: GaussianPolicy, cfg: AdversarialConfig, episode_codes: EpisodeCodes | None = None,
+                         ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam over the policy, its log std at ``bc_init_log_std_lr_scale`` times ``bc_init_lr`` (and
+    the episodes' continuous codes at ``bc_init_code_lr_scale`` times), and the schedule to step
+    after each update: linear decay to 0 over the warm start (``bc_init_lr_decay``)."""
     rest = [p for name, p in policy.named_parameters() if name != "log_std"]
-    opt = torch.optim.Adam([{"params": rest}, {"params": [policy.log_std],
-                                               "lr": cfg.bc_init_lr * cfg.bc_init_log_std_lr_scale}],
-                           lr=cfg.bc_init_lr)
+    groups = [{"params": rest}, {"params": [policy.log_std], "lr": cfg.bc_init_lr * cfg.bc_init_log_std_lr_scale}]
+    if episode_codes is not None:
+        groups.append({"params": [episode_codes.codes], "lr": cfg.bc_init_lr * cfg.bc_init_code_lr_scale})
+    opt = torch.optim.Adam(groups, lr=cfg.bc_init_lr)
     steps = cfg.bc_init_iterations
     return opt, torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / max(steps, 1) if cfg.bc_init_lr_decay else 1.0)
 
 
 def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
                    demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
-    """The periodic evaluation of a run: mode metrics on circles, per-task figures
+    """The periodic evaluation of a run: mode metrics on circles (continuous codes: code against
+    fitted radius, ``evaluate_code_radius``), per-task figures
     on multi-task demonstrations (``pomil demos hopper``); None otherwise (see ``pomil.envs.evaluation_kind``)."""
     kind = evaluation_kind(env_info["id"], demos.metadata) if cfg.eval_every else None
     if kind is None:
         return None
-    if kind == "circles":
+    if kind == "circles" and cfg.code_kind == "continuous" and LEARNER_KINDS[cfg.learner]["codes"]:
+        from pomil.eval.circles import evaluate_code_radius
+
+        def measure(tp: TrainedPolicy) -> dict[str, float]:
+            metrics, _ = evaluate_code_radius(tp, episodes_per_value=cfg.eval_episodes, seed=12345)
+            return {"eval/spearman": metrics["spearman"], "eval/radius_low": metrics["radius_covered"][0],
+                    "eval/radius_high": metrics["radius_covered"][1]}
+    elif kind == "circles":
         from pomil.eval.circles import evaluate_circles
 
         def measure(tp: TrainedPolicy) -> dict[str, float]:

@@ -75,14 +75,26 @@ class Circle:
             )
 
 
+    def with_radius(self, radius: float) -> "Circle":
+        """The circle of ``radius`` through the origin with the same tangent there and direction.
+
+        >>> Circle((0.0, 5.0), 5.0, 1).with_radius(3.0)
+        Circle(center=(0.0, 3.0), radius=3.0, direction=1)
+        """
+        return Circle.through_origin(math.degrees(math.atan2(self.center[1], self.center[0])), radius, self.direction)
+
+
 def circles_preset(name: str = "two", radius: float = 5.0) -> tuple[Circle, ...]:
-    """Named sets of modes: ``two`` (the paper's) or ``four`` (two more on the x axis)."""
+    """Named sets of modes: ``one`` (anti-clockwise around (0, radius)), ``two`` (the paper's)
+    or ``four`` (two more on the x axis)."""
     two = (Circle((0.0, radius), radius, 1), Circle((0.0, -radius), radius, -1))
+    if name == "one":
+        return two[:1]
     if name == "two":
         return two
     if name == "four":
         return two + (Circle((radius, 0.0), radius, 1), Circle((-radius, 0.0), radius, -1))
-    raise ValueError(f"unknown circles preset {name!r}; expected 'two' or 'four'")
+    raise ValueError(f"unknown circles preset {name!r}; expected 'one', 'two' or 'four'")
 
 
 @dataclass(frozen=True)
@@ -323,8 +335,28 @@ def classify_modes(
     return mode.numpy().astype(np.int64)
 
 
+def fit_circles(positions: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares circle through each trajectory's points and the origin it starts from
+    (algebraic fit: x^2 + y^2 + D x + E y + F = 0, linear in D, E, F).
+
+    ``positions``: (E, T, 2) visited positions.  Returns (centres (E, 2), radii (E,)); a straight
+    trajectory fits a very large radius (inf where the points are collinear to machine precision)."""
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 3 or pos.shape[-1] != 2:
+        raise ValueError(f"positions must have shape (E, T, 2), got {pos.shape}")
+    pts = np.concatenate([np.zeros((pos.shape[0], 1, 2)), pos], axis=1)
+    centres, radii = np.empty((pos.shape[0], 2)), np.empty(pos.shape[0])
+    for e, p in enumerate(pts):
+        a = np.column_stack([p, np.ones(len(p))])
+        sol, *_ = np.linalg.lstsq(a, -(p ** 2).sum(1), rcond=None)
+        centres[e] = -sol[:2] / 2
+        r2 = (centres[e] ** 2).sum() - sol[2]
+        radii[e] = math.sqrt(r2) if np.isfinite(r2) and r2 > 0 else math.inf
+    return centres, radii
+
+
 def make_spec(
-    modes: str = "two", radius: float = 5.0, episode_length: int = 33, history: int = 1,
+    modes: Literal["one", "two", "four"] | str = "two", radius: float = 5.0, episode_length: int = 33, history: int = 1,
     action_type: Literal["vector", "angle"] = "vector",
 ) -> CirclesSpec:
     return CirclesSpec(circles_preset(modes, radius), episode_length, history, action_type)

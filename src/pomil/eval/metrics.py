@@ -75,3 +75,27 @@ def mode_metrics(codes: np.ndarray, modes: np.ndarray, num_codes: int, num_modes
         "overall_mode_share": overall,
         "overall_none_share": float((modes == -1).mean()),
     }
+
+
+def average_ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks 0 .. n-1 of ``x``, ties sharing the mean of their ranks (inf ranks last).
+
+    >>> average_ranks(np.array([3.0, 1.0, 3.0])).tolist()
+    [1.5, 0.0, 1.5]"""
+    x = np.asarray(x, dtype=np.float64)
+    ranks = np.empty(len(x))
+    ranks[np.argsort(x, kind="stable")] = np.arange(len(x))
+    _, inv = np.unique(x, return_inverse=True)
+    return (np.bincount(inv, ranks) / np.bincount(inv))[inv]
+
+
+def spearman(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman's rank correlation of two equally long sequences (ties: average ranks); 0 when
+    either is constant.  NaN is not accepted (ValueError)."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 1 or np.isnan(x).any() or np.isnan(y).any():
+        raise ValueError(f"spearman: expected two 1-D sequences of one length without NaN, got {x.shape}, {y.shape}")
+    rx, ry = average_ranks(x), average_ranks(y)
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    denom = np.sqrt((rx ** 2).sum() * (ry ** 2).sum())
+    return float((rx * ry).sum() / denom) if denom > 0 else 0.0

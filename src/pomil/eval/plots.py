@@ -98,3 +98,57 @@ def curves_figure(results: dict):
     axes[0][-1].legend(fontsize=7, loc="lower right", ncol=2)
     fig.tight_layout()
     return fig
+
+
+def code_radius_figure(rollouts_path: str | Path, path: str | Path, max_paths: int = 120) -> None:
+    """``pomil reproduce circles-continuous``'s figure from its rollouts.npz: the demonstrations
+    coloured by radius, seed 0's trajectories coloured by code value, and code value against
+    fitted radius for every seed (points; lines through each code value's median)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with np.load(rollouts_path, allow_pickle=False) as r:
+        data = {k: r[k] for k in r.files}
+    seeds = sorted({k.split("/")[0] for k in data if k.startswith("seed")}, key=lambda s: int(s[4:]))
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.4))
+
+    def paths(ax, positions, values, label, title):
+        norm = matplotlib.colors.Normalize(values.min(), values.max())
+        step = max(1, len(values) // max_paths)
+        for e in np.argsort(values)[::step]:
+            p = np.concatenate([np.zeros((1, 2)), positions[e]], axis=0)
+            ax.plot(p[:, 0], p[:, 1], color=matplotlib.cm.viridis(norm(values[e])), lw=0.7, alpha=0.7)
+        fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=ax, label=label)
+        ax.plot(0, 0, "k.", ms=6)
+        ax.set_aspect("equal")
+        ax.set_xlim(-9, 9)
+        ax.set_ylim(-3, 15)
+        ax.set_title(title, fontsize=10)
+
+    paths(axes[0], data["experts/positions"], data["experts/radii"], "radius", "demonstrations")
+    if seeds:
+        paths(axes[1], data[f"{seeds[0]}/positions"], data[f"{seeds[0]}/code_values"], "code value",
+              f"policy, {seeds[0]}")
+    ax = axes[2]
+    top = 1.5 * float(data["experts/radii"].max())  # straight paths fit huge radii: clipped
+    for i, s in enumerate(seeds):
+        c, rad = data[f"{s}/code_values"], data[f"{s}/radii"]
+        colour = COLOURS[i % len(COLOURS)]
+        jitter = (np.random.default_rng(i).random(len(c)) - 0.5) * 0.03
+        ax.scatter(c + jitter, np.clip(rad, 0, top), s=5, alpha=0.35, color=colour)
+        values = np.unique(c)
+        ax.plot(values, [np.median(rad[c == v]) for v in values], color=colour, marker="o", label=s)
+    lo, hi = np.percentile(data["experts/radii"], [0, 100])
+    ax.axhspan(lo, hi, color="grey", alpha=0.12, label="demonstrations' radii")
+    ax.set_ylim(0, top)
+    ax.set_xlabel("code value")
+    ax.set_ylabel(f"fitted radius (clipped to {top:.1f})")
+    ax.set_title("code value vs fitted radius", fontsize=10)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    suffix = Path(path).suffix.lstrip(".") or "png"
+    atomic_write(Path(path), lambda f: fig.savefig(f, format=suffix, dpi=110))
+    plt.close(fig)

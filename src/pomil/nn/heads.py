@@ -3,7 +3,7 @@
 Each is a :class:`BeliefHead`: an encoder (feed-forward, or a GRU, LSTM or
 attention belief over (z_t, a_{t-1}), see ``pomil.nn.encoders``) followed by
 an MLP over [features, extra], where ``extra`` is the current action a_t
-(critic, posterior) or the one-hot code (value).
+(critic, posterior) or the code (value: one-hot, or a continuous code).
 Separate encoders per module are the paper's design: b(tau; omega) for the
 critic, b(tau; psi) for the posterior.
 """
@@ -51,9 +51,11 @@ def critic(obs_dim: int, act_dim: int, encoder: str = "gru", hidden_size: int = 
 
 
 def posterior(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128,
-              context: int = 32) -> BeliefHead:
-    """Logits of P(c | b(tau; psi), a_t)."""
-    return BeliefHead(obs_dim, act_dim, act_dim, num_codes, encoder, hidden_size, context)
+              context: int = 32, code_kind: str = "discrete") -> BeliefHead:
+    """P(c | b(tau; psi), a_t): K logits, or for a continuous code of ``num_codes`` = d dimensions
+    a diagonal Gaussian's mean and log std (2d outputs; ``pomil.nn.codes.code_log_likelihood``)."""
+    out = num_codes if code_kind == "discrete" else 2 * num_codes
+    return BeliefHead(obs_dim, act_dim, act_dim, out, encoder, hidden_size, context)
 
 
 def value(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128,

@@ -1,9 +1,9 @@
 """Gaussian policy pi(a | encoder(history), c) with an optional latent code.
 
-The code c (one-hot, K codes) is embedded and added to the encoder's
-features, as in the paper's code.  The log standard deviation is a learned
-state-independent vector.  ``tanh_mean`` squashes the mean into (-1, 1) (the
-paper's Hopper code).
+The code c (one-hot, K codes; or a continuous c in R^d, see ``pomil.nn.codes``)
+is embedded linearly and added to the encoder's features, as in the paper's
+code.  The log standard deviation is a learned state-independent vector.
+``tanh_mean`` squashes the mean into (-1, 1) (the paper's Hopper code).
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import torch
 from torch import nn
 from torch.distributions import Normal
 
+from pomil.nn.codes import CODE_PRIORS
 from pomil.nn.encoders import make_encoder
 
 
@@ -24,7 +25,9 @@ class PolicyArch:
 
     ``encoder``: one of ``pomil.nn.encoders.ENCODERS``; ``context``: the attention
     encoder's window in steps (ignored by the others); ``obs_delta`` and
-    ``prev_action``: what the encoder sees of each step (``pomil.nn.encoders.InputView``)."""
+    ``prev_action``: what the encoder sees of each step (``pomil.nn.encoders.InputView``).
+    ``num_codes``: width of the code input, K one-hot codes or the dimension d of a continuous
+    code (``code_kind``), drawn from ``code_prior`` (``pomil.nn.codes``; continuous codes only)."""
 
     obs_dim: int
     act_dim: int
@@ -36,14 +39,29 @@ class PolicyArch:
     context: int = 32
     obs_delta: bool = False
     prev_action: bool = True
+    code_kind: str = "discrete"
+    code_prior: str = "uniform"
+
+    def __post_init__(self) -> None:
+        if self.code_kind not in ("discrete", "continuous"):
+            raise ValueError(f"code_kind must be 'discrete' or 'continuous', got {self.code_kind!r}")
+        if self.code_prior not in CODE_PRIORS:
+            raise ValueError(f"code_prior must be one of {list(CODE_PRIORS)}, got {self.code_prior!r}")
+
+    @property
+    def continuous_codes(self) -> bool:
+        return self.code_kind == "continuous" and self.num_codes > 0
 
     def to_dict(self) -> dict[str, Any]:
         """The fields; ``context`` only for the attention encoder, ``obs_delta`` and ``prev_action``
-        only when not their defaults (so that other policies' checkpoints are as before these
-        existed; a checkpoint without them loads with the defaults)."""
+        only when not their defaults, ``code_kind`` and ``code_prior`` only for continuous codes (so
+        that other policies' checkpoints are as before these existed; a checkpoint without them
+        loads with the defaults: discrete codes)."""
         d = asdict(self)
         if self.encoder != "attention":
             del d["context"]
+        if not self.continuous_codes:
+            del d["code_kind"], d["code_prior"]
         for key, default in (("obs_delta", False), ("prev_action", True)):
             if d[key] == default:
                 del d[key]
@@ -66,11 +84,11 @@ class GaussianPolicy(nn.Module):
         return self.encoder.initial_state(batch, device)
 
     def dist(self, features: torch.Tensor, codes: torch.Tensor | None = None) -> Normal:
-        """The action distribution from encoder features (..., feat) and one-hot codes (..., K)
-        that broadcast against them (e.g. (N, K) codes for (T, N, feat) features)."""
+        """The action distribution from encoder features (..., feat) and codes (..., K) (one-hot,
+        or continuous (..., d)) that broadcast against them (e.g. (N, K) codes for (T, N, feat) features)."""
         if self.code_embed is not None:  # codes are ignored by a policy without them
             if codes is None:
-                raise ValueError("this policy has latent codes: pass one-hot codes")
+                raise ValueError("this policy has latent codes: pass them (one-hot, or continuous)")
             features = features + self.code_embed(codes)
         mean = self.mean(features)
         if self.arch.tanh_mean:
@@ -97,8 +115,8 @@ class GaussianPolicy(nn.Module):
 
     def dist_every_code(self, features: torch.Tensor) -> Normal:
         """The action distribution under each of the K codes: batch shape (K, *features.shape[:-1], act_dim)."""
-        if self.code_embed is None:
-            raise ValueError("this policy has no latent codes")
+        if self.code_embed is None or self.arch.continuous_codes:
+            raise ValueError("this policy has no discrete latent codes")
         k = self.arch.num_codes
         lead = features.shape[:-1]
         codes = torch.eye(k, device=features.device).view(k, *(1,) * len(lead), k).expand(k, *lead, k)

@@ -9,8 +9,8 @@ from contextlib import contextmanager
 from typing import Callable, Iterator, NamedTuple
 
 import torch
-import torch.nn.functional as F
 
+from pomil.nn.codes import draw_codes
 from pomil.nn.heads import BeliefHead
 from pomil.nn.policy import GaussianPolicy
 from pomil.rl.storage import Rollout
@@ -35,7 +35,7 @@ class Collected(NamedTuple):
     next_values: torch.Tensor
     """(T, N): V(s_{t+1}), the final observation's value at the last step."""
     codes: torch.Tensor
-    """(N,): the latent code index of each copy's episode."""
+    """(N,): the latent code index of each copy's episode; continuous codes: (N, d), the codes."""
     env_rewards: torch.Tensor
     """(T, N): the environment's own rewards, zero outside episodes (never learned from by imitation learners)."""
 
@@ -43,10 +43,12 @@ class Collected(NamedTuple):
 @torch.no_grad()
 def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int,
             execute: Callable[[torch.Tensor], torch.Tensor],
-            generator: torch.Generator, device: torch.device, threads: int = 1) -> Collected:
+            generator: torch.Generator, device: torch.device, threads: int = 1, code_kind: str = "discrete",
+            code_prior: str = "uniform") -> Collected:
     """One episode in each of the env's N copies, a latent code per episode
-    (none when ``num_codes`` is 0).  ``execute`` maps raw actions to executed
-    ones (``pomil.envs.executed_actions_fn``).  Episodes may end at different
+    (none when ``num_codes`` is 0): one of ``num_codes`` codes, or with ``code_kind``
+    continuous a ``num_codes``-dimensional code from ``code_prior`` (``pomil.nn.codes``).
+    ``execute`` maps raw actions to executed ones (``pomil.envs.executed_actions_fn``).  Episodes may end at different
     steps; ``mask`` marks the steps that belong to an episode.
 
     Returns a :class:`Collected`: the rollout, the next states' values, each
@@ -59,8 +61,8 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int,
     the episodes, in one unroll of the value network over the whole rollout."""
     n = env.num_envs
     obs = env.reset()
-    code_idx = torch.randint(max(num_codes, 1), (n,), generator=generator).to(device)
-    codes = F.one_hot(code_idx, num_codes).float() if num_codes else torch.zeros(n, 0, device=device)
+    code_idx, codes = draw_codes(code_kind, code_prior, n, num_codes, generator)
+    code_idx, codes = code_idx.to(device), codes.to(device)
     h_pi, h0_v = policy.initial_state(n, device), value.initial_state(n, device)
     h0_pi = h_pi.clone()
     prev = torch.zeros(n, policy.arch.act_dim, device=device)
