@@ -28,6 +28,8 @@ _spec.loader.exec_module(ch)
 # Recorded on main at 3070983 (before the architecture refactor of issue 17); checkpoints without their config.
 # The two InfoGAIL-POMDP runs re-recorded after the warm start's default became the whole-set code balance
 # (mixture_balance "dataset"): main before and after merging the refactor gave these same hashes.
+# The Intel Xeon (family 6 model 167) entries: recorded at 4b085d7 (continuous codes merged), before the warm
+# start's posterior loop was shared between discrete and continuous codes; the same after it.
 RECORDED = {
     "torch 2.13.0+cpu AVX512 / AMD EPYC family 26 model 2": {
         "circles-infogail-pomdp": "bdf30e403610bb334f2292ba24c6cce04c0262a48ff21fd72f335beabe5424c6",
@@ -36,6 +38,14 @@ RECORDED = {
         "hopper-infogail-pomdp": "1b937a1b7203a767f3134ded03640877be6b5d7d56b3036ea51bfa9f0e6051c2",
         "circles-bc": "14b0acf6a0ffdc85cf53bd02bf1ec77b50e9e4e2c2356acf3713ffe7072efcbe",
         "hopper-expert": "679351763f262407ef518427eb86d5f61edc8e23bcc54c10059d9f29191292a9",
+    },
+    "torch 2.13.0+cpu AVX512 / Intel(R) Xeon(R) Processor family 6 model 167": {
+        "circles-infogail-pomdp": "b85e2e322d2bcc09c92eede576cd95a2fd38877fe829a8f33b292504609cf8e2",
+        "circles-paper-text-window": "dddda27ee3941b914df59266a41a4552cc5945283e7365a46527349bfa3ecd2c",
+        "circles-gail": "7206f6929254085ae8acf51105f1eb7712e4962f292d639e6ec1791bff7a4ff9",
+        "hopper-infogail-pomdp": "5edc9c1983d55122336fcffd75625176596cc17d9e34b2356f297fa8f45661b4",
+        "circles-bc": "895f20a6fec1803b67abb9cdc02386a1c9939ba17f1367db588b8506ed8593d0",
+        "hopper-expert": "65b4bef3279a0f7881ea4c49bff1cb291a3879dc09e3ee83fdca5fc0f0abe1c5",
     },
 }
 RECORDED_METRICS = {
@@ -46,6 +56,14 @@ RECORDED_METRICS = {
         "hopper-infogail-pomdp": "c48c1a36f6dd0f4d1ded22de4c46924c98057a98ab6b6f250ef947b075961074",
         "circles-bc": "2f4f6828f07b0017a13e432ff63ae113b1ef6cf24b90a95885fc60e4ccf6a15d",
         "hopper-expert": "684474f5758d1c9adcdb79501297e7ba91e071eaea759d0d51ba66d93afc8e83",
+    },
+    "torch 2.13.0+cpu AVX512 / Intel(R) Xeon(R) Processor family 6 model 167": {
+        "circles-infogail-pomdp": "4a814d68c41847fd4236b93ac82d48ecd3a6135365bab000a898ac512b663c7f",
+        "circles-paper-text-window": "0259de323fdf92730ae9b2c7b280541e1021b5d99b6c641a2cde75d1606b2bb4",
+        "circles-gail": "583aab41af57df62bc28cb2b5c57445ca1b60287b67a493c0d95d741d3879ca2",
+        "hopper-infogail-pomdp": "0dc64c0112d5a50c7c73b6c5908b24fa926a3acfc018a5bd0ede8b618151aaa2",
+        "circles-bc": "0d27a1b6c5224b8188afc75a2ef706707b304bca34781887868ae4370a488d4f",
+        "hopper-expert": "9671f21f99611302c2f8d4ca2ee580f9a648daad7aaa2c72617e31e66150e381",
     },
 }
 

@@ -214,16 +214,20 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
         if name == "infogail-pomdp":  # shipped, so `pomil evaluate` works without training
             TrainedPolicy.load(runs[0]["checkpoint"]).save(Path(cfg.out) / "infogail-pomdp.pt")
     results["wall_time_s"] = time.perf_counter() - t_start
+    write_results(Path(cfg.out), results, markdown_table(results), rollouts, plot_from_rollouts)
+    return results
 
-    out = Path(cfg.out)
+
+def write_results(out: Path, results: dict[str, Any], table: str, rollouts: dict[str, np.ndarray],
+                  figure: Callable[[Path, Path], None]) -> None:
+    """A reproduction's files in ``out``: metrics.json, table.md, rollouts.npz and the figure
+    that ``figure(rollouts path, figure path)`` draws from them; prints the table."""
     write_json(out / "metrics.json", results)
-    table = markdown_table(results)
     atomic_write(out / "table.md", lambda f: f.write(table.encode()))
     atomic_write(out / "rollouts.npz", lambda f: np.savez_compressed(f, **rollouts))
-    plot_from_rollouts(out / "rollouts.npz", out / "figure.png")
+    figure(out / "rollouts.npz", out / "figure.png")
     print(table)
     print(f"wrote {out}/metrics.json, table.md, figure.png in {results['wall_time_s']:.0f} s")
-    return results
 
 
 def _circles_job(cfg: CirclesReproConfig, name: str, seed: int) -> dict[str, Any]:
@@ -499,13 +503,7 @@ def reproduce_circles_continuous(cfg: CirclesContinuousConfig) -> dict[str, Any]
             rollouts[f"seed{s}/{key}"] = done[cfg.learner, s][key]
     TrainedPolicy.load(runs[0]["checkpoint"]).save(out / f"{cfg.learner}.pt")
     results["wall_time_s"] = time.perf_counter() - t_start
-    write_json(out / "metrics.json", results)
-    table = continuous_table(results)
-    atomic_write(out / "table.md", lambda f: f.write(table.encode()))
-    atomic_write(out / "rollouts.npz", lambda f: np.savez_compressed(f, **rollouts))
-    code_radius_figure(out / "rollouts.npz", out / "figure.png")
-    print(table)
-    print(f"wrote {out}/metrics.json, table.md, figure.png in {results['wall_time_s']:.0f} s")
+    write_results(out, results, continuous_table(results), rollouts, code_radius_figure)
     return results
 
 

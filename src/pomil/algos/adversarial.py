@@ -916,20 +916,31 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = most_likely_codes(m.policy, expert, expert_prev)
         stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
-        post_opt = torch.optim.Adam(m.posterior.parameters(), lr=cfg.bc_init_lr)
-        starts = first_step_starts(expert.mask)
-        for _ in range(cfg.posterior_init_iterations):
-            idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
-            loss, s = _code_cross_entropy(m.posterior, expert.observations[:, idx], expert_prev[:, idx],
-                                          expert.actions[:, idx], starts[:, idx], expert.mask[:, idx],
-                                          codes[idx].expand(expert.mask.shape[0], -1))
-            if guard is not None:
-                guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
-            post_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            post_opt.step()
-        stats.update(s)
+        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
+
+
+def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: torch.Tensor, codes: torch.Tensor,
+                         cfg: AdversarialConfig, gen: torch.Generator,
+                         guard: DivergenceGuard | None = None) -> dict[str, float]:
+    """``posterior_init_iterations`` steps of the posterior on the demonstrations, each episode
+    under its code in ``codes``: indices (E,) (cross-entropy) or continuous codes (E, d)
+    (:func:`_code_gaussian_nll`).  Returns the last step's stats."""
+    code_nll = _code_cross_entropy if codes.ndim == 1 else _code_gaussian_nll
+    post_opt = torch.optim.Adam(post.parameters(), lr=cfg.bc_init_lr)
+    starts = first_step_starts(expert.mask)
+    s: dict[str, float] = {}
+    for _ in range(cfg.posterior_init_iterations):
+        idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
+        targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
+        loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
+                           starts[:, idx], expert.mask[:, idx], targets)
+        if guard is not None:
+            guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
+        post_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        post_opt.step()
+    return s
 
 
 def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: AdversarialConfig,
@@ -940,19 +951,7 @@ def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torc
     if episode_codes is not None and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = episode_codes.codes.detach()
         stats["bc/code_spread"] = codes.std(0).mean().item()
-        post_opt = torch.optim.Adam(m.posterior.parameters(), lr=cfg.bc_init_lr)
-        starts = first_step_starts(expert.mask)
-        for _ in range(cfg.posterior_init_iterations):
-            idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
-            loss, s = _code_gaussian_nll(m.posterior, expert.observations[:, idx], expert_prev[:, idx],
-                                         expert.actions[:, idx], starts[:, idx], expert.mask[:, idx],
-                                         codes[idx].expand(expert.mask.shape[0], -1, -1))
-            if guard is not None:
-                guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
-            post_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            post_opt.step()
-        stats.update(s)
+        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
