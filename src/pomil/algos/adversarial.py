@@ -978,11 +978,7 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
         decay.step()
         if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
             episode_codes.spread_()
-        if guard is not None:
-            at = f"warm-start step {step}"
-            guard.value(at, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
-            guard.grads(at, "warm-start policy", policy.parameters())
-            guard.params(at, {"warm-start policy": policy})
+        check_warm_start_step(guard, f"warm-start step {step}", stats, policy)
     if cfg.bc_init_fit_log_std:
         codes = (episode_codes.codes.detach() if episode_codes is not None
                  else codes_of(torch.arange(expert.mask.shape[1], device=expert.mask.device)))
@@ -1002,14 +998,19 @@ def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_
     for step in range(1, cfg.bc_init_iterations + 1):
         stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
         decay.step()
-        if guard is not None:
-            at = f"{where}warm-start step {step}"
-            guard.value(at, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
-            guard.grads(at, "warm-start policy", policy.parameters())
-            guard.params(at, {"warm-start policy": policy})
+        check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
     if cfg.bc_init_fit_log_std:
         stats.update(fit_log_std(policy, expert, expert_prev, mixture))
     return stats
+
+
+def check_warm_start_step(guard: DivergenceGuard | None, at: str, stats: dict[str, float],
+                          policy: GaussianPolicy) -> None:
+    """The divergence guard's checks after a warm-start step ``at``: its loss, the policy's gradients and weights."""
+    if guard is not None:
+        guard.value(at, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
+        guard.grads(at, "warm-start policy", policy.parameters())
+        guard.params(at, {"warm-start policy": policy})
 
 
 def warm_start_optimizer(policy: GaussianPolicy, cfg: AdversarialConfig, episode_codes: EpisodeCodes | None = None,
