@@ -1,0 +1,96 @@
+"""``--num-codes auto`` over seeds: how often the search picks the true number of modes.
+
+Runs only the search of ``pomil train infogail-pomdp --num-codes auto --demos D --seed S``
+(:func:`pomil.algos.adversarial.auto_num_codes`, the library defaults otherwise) for each
+dataset and seed, and prints per dataset the chosen K per seed, the share of seeds that
+chose the true K, each K's mean held-out score and the search's wall time.  The datasets
+are recorded into ``--data`` when missing: the ``two`` and ``four`` circle presets
+(``pomil demos circles``, 400 episodes) and Hopper Forward/Backward in the paper's setting
+(``data/hopper-paper.npz``, the committed demonstrations)::
+
+    .venv/bin/python benchmarks/num_codes_seeds.py --out benchmarks/results/num_codes_seeds.json   # 10 seeds: ~1 h
+    .venv/bin/python benchmarks/num_codes_seeds.py --datasets two --seeds 1 --set num_codes_max=2 \\
+        --set num_codes_search_iterations=2 --out /tmp/nc.json                                       # a smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pomil.algos.adversarial import AdversarialConfig, auto_num_codes
+from pomil.config import from_dict, parse_kwargs
+from pomil.data import load_training_demos
+from pomil.envs import executed_actions_fn
+from pomil.envs.wrappers import parse_mask
+from pomil.training import write_json
+
+TRUE_K = {"two": 2, "four": 4, "hopper": 2}
+
+
+def dataset(name: str, data_dir: Path) -> Path:
+    """The demonstrations of ``name``, recorded when missing."""
+    if name == "hopper":
+        return Path("data/hopper-paper.npz")
+    path = data_dir / f"circles-{name}.npz"
+    if not path.exists():
+        from pomil.demos import record_circles_demos
+        from pomil.envs.circles import make_spec
+
+        data_dir.mkdir(parents=True, exist_ok=True)
+        record_circles_demos(make_spec(modes=name), episodes=400, seed=0).save(path)
+    return path
+
+
+def search(path: Path, seed: int, overrides: dict[str, str]) -> dict[str, Any]:
+    """One search's choice, scores and wall time."""
+    cfg = from_dict(AdversarialConfig, {**overrides, "demos": str(path), "seed": seed, "num_codes": "auto"},
+                    source="benchmarks/num_codes_seeds.py")
+    demos, env_id, env_kwargs = load_training_demos(cfg.demos, parse_kwargs(cfg.env_kwargs),
+                                                    parse_mask(cfg.observation_mask))
+    t0 = time.perf_counter()
+    choice = auto_num_codes(cfg, demos.padded("cpu"), executed_actions_fn(env_id, env_kwargs))
+    return {"seed": seed, "chosen": choice.chosen, "scores": {str(k): v for k, v in choice.scores.items()},
+            "wall_s": time.perf_counter() - t0}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--datasets", default="two,four,hopper", help="comma-separated: two, four, hopper")
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--data", default="runs/num_codes_seeds", help="where the circle demonstrations are recorded")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an AdversarialConfig setting (repeatable)")
+    ap.add_argument("--out", default="", help="JSON of every search")
+    args = ap.parse_args()
+    names = [n for n in args.datasets.split(",") if n]
+    unknown = [n for n in names if n not in TRUE_K]
+    if unknown:
+        sys.exit(f"--datasets: unknown {unknown}; expected some of {list(TRUE_K)}")
+    overrides = dict(kv.split("=", 1) for kv in args.set)
+    results: dict[str, Any] = {}
+    for name in names:
+        path = dataset(name, Path(args.data))
+        rows = []
+        for seed in range(args.seeds):
+            rows.append(search(path, seed, overrides))
+            print(f"{name} seed {seed}: K {rows[-1]['chosen']} ({rows[-1]['wall_s']:.0f} s)", file=sys.stderr)
+        results[name] = {"true_k": TRUE_K[name], "demos": str(path), "runs": rows}
+    print("| demonstrations | true K | chosen K per seed | true K chosen | search wall s (mean) |")
+    print("|---|---|---|---|---|")
+    for name, r in results.items():
+        chosen = [x["chosen"] for x in r["runs"]]
+        hits = sum(k == r["true_k"] for k in chosen)
+        print(f"| {name} | {r['true_k']} | {', '.join(map(str, chosen))} | {hits} / {len(chosen)} | "
+              f"{np.mean([x['wall_s'] for x in r['runs']]):.0f} |")
+    if args.out:
+        write_json(Path(args.out), {"settings": overrides, "datasets": results})
+
+
+if __name__ == "__main__":
+    main()
