@@ -120,7 +120,9 @@ def hashes(only: list[str] | None = None) -> dict[str, dict[str, str]]:
 
 
 def machine() -> str:
-    """torch version, its CPU kernels and the CPU model: float results are only comparable within one."""
+    """torch version, its CPU kernels, the CPU model and torch's thread count: float results are only
+    comparable within one (the threads split reductions differently: OMP_NUM_THREADS=1 and torch's
+    default of one per core give other checkpoints on the same CPU)."""
     info: dict[str, str] = {}
     try:
         for line in open("/proc/cpuinfo"):
@@ -129,7 +131,8 @@ def machine() -> str:
     except OSError:
         pass
     cpu = f"{info.get('model name', 'unknown')} family {info.get('cpu family', '?')} model {info.get('model', '?')}"
-    return f"torch {torch.__version__} {torch.backends.cpu.get_cpu_capability()} / {cpu}"
+    threads = torch.get_num_threads()
+    return f"torch {torch.__version__} {torch.backends.cpu.get_cpu_capability()} / {cpu} / {threads} threads"
 
 
 def main() -> int:
