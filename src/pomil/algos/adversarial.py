@@ -46,7 +46,7 @@ from typing import Any, Callable, ClassVar, Iterator, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import (EpisodeCodes, MixtureAssignment, bc_step, coded_bc_step, demo_batch, demo_nll,
+from pomil.algos.bc import (EpisodeCodes, MixtureAssignment, bc_step, demo_batch, demo_nll,
                             episodes_within, first_step_starts, fit_log_std, most_likely_codes)
 from pomil.algos.num_codes import NumCodesChoice, search_num_codes
 from pomil.api import TrainedPolicy
@@ -974,7 +974,7 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
                                             gen).to(idx.device)
     stats: dict[str, float] = {}
     for step in range(1, cfg.bc_init_iterations + 1):
-        stats = coded_bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of)
+        stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
         decay.step()
         if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
             episode_codes.spread_()

@@ -160,20 +160,26 @@ def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisod
 
 def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
                  generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
-                 assignment: MixtureAssignment | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                 assignment: MixtureAssignment | None = None,
+                 codes_of: Callable[[torch.Tensor], torch.Tensor] | None = None,
+                 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Behaviour-cloning loss (:func:`demo_nll`) on a random batch of whole demonstration episodes;
-    with ``mixture`` and an ``assignment``, each episode is cloned by the codes it assigns."""
+    with ``mixture`` and an ``assignment``, each episode is cloned by the codes it assigns; with
+    ``codes_of``, episode ``i`` under the code vector ``codes_of(i)`` (continuous codes: each
+    episode's own, :class:`EpisodeCodes`, whose batch rows then learn too; or random ones)."""
     batch, prev, idx = demo_batch(data, prev_actions, batch_episodes, generator)
     resp = assignment.update(policy)[:, idx] if mixture and assignment is not None else None
     return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator, num_codes,
-                    mixture, resp)
+                    mixture, resp, codes_of(idx) if codes_of is not None else None)
 
 
 def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
             batch_episodes: int, generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
-            assignment: MixtureAssignment | None = None) -> dict[str, float]:
+            assignment: MixtureAssignment | None = None,
+            codes_of: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict[str, float]:
     """One update of :func:`demo_bc_loss`."""
-    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes, generator, num_codes, mixture, assignment)
+    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes, generator, num_codes, mixture, assignment,
+                               codes_of)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -271,21 +277,6 @@ def principal_components(data: PaddedEpisodes, dim: int) -> torch.Tensor:
     if scores.shape[1] < dim:  # fewer components than dimensions (tiny sets): zeros, spread by index
         scores = torch.cat([scores, scores.new_zeros(len(scores), dim - scores.shape[1])], 1)
     return scores
-
-
-def coded_bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes,
-                  prev_actions: torch.Tensor, batch_episodes: int, generator: torch.Generator,
-                  codes_of: Callable[[torch.Tensor], torch.Tensor]) -> dict[str, float]:
-    """One behaviour-cloning update on a random batch of whole episodes, episode ``i`` under the code
-    vector ``codes_of(i)`` (continuous codes: each episode's own, :class:`EpisodeCodes`, whose
-    batch rows then learn too; or random ones)."""
-    batch, prev, idx = demo_batch(data, prev_actions, batch_episodes, generator)
-    loss, stats = demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator,
-                           codes=codes_of(idx))
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    optimizer.step()
-    return stats
 
 
 def balanced_responsibilities(scores: torch.Tensor, iterations: int = 50) -> torch.Tensor:
