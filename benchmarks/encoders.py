@@ -109,6 +109,8 @@ def main() -> None:
                 for seed in range(args.seeds):
                     row = train_one(task, encoder, seed, args, episodes, Path(tmp) / task / encoder / str(seed))
                     runs.append(row)
+                    results["tasks"].setdefault(task, {})[encoder] = {"runs": runs}
+                    write_json(Path(args.out), {**results, "partial": True})  # a cut-off benchmark keeps its runs
                     print(f"{task} {encoder} seed {seed}: " + ", ".join(f"{c} {row[c]:.2f}" for c in COLUMNS[task]),
                           flush=True)
                 per_encoder[encoder] = {"runs": runs, "summary": {
