@@ -9,7 +9,7 @@ import torch
 
 from pomil.data import Demonstrations
 from pomil.envs.circles import CircleExperts, CirclesSpec, CirclesVecEnv, ENV_ID, DEFAULT_EXPERT_NOISE
-from pomil.envs.locomotion import HOPPER_ID
+from pomil.envs.locomotion import HOPPER_ID, REWARD_KEYWORDS
 from pomil.errors import PomilError
 
 
@@ -149,6 +149,8 @@ def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: 
 
 
 def _task_name(kwargs: dict) -> str:
+    if "target_velocity" in kwargs:  # pomil/HopperSpeed-v0
+        return f"speed-{float(kwargs['target_velocity']):g}"
     w = kwargs.get("forward_reward_weight")
     return "task" if w is None or w == 0 else ("forward" if w > 0 else "backward")
 
@@ -161,8 +163,8 @@ def _x_position(sim) -> np.ndarray:
 
 
 def _is_reward_term(key: str) -> bool:
-    """Constructor keywords that change the reward only (gymnasium's MuJoCo naming)."""
-    return key.endswith(("_weight", "_reward"))
+    """Constructor keywords that change the reward only (gymnasium's MuJoCo naming, and pomil's own)."""
+    return key.endswith(("_weight", "_reward")) or key in REWARD_KEYWORDS
 
 
 def merge_demos(sources: list[Demonstrations], proportions: list[float] | None = None, episodes: int | None = None,
@@ -174,7 +176,7 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
     Labels (evaluation only) follow the sources' label names, so the same task
     in two files keeps one label.  The sources must share environment id,
     observation mask and sizes, and their environment keywords may differ
-    only in reward terms (``*_weight``, ``*_reward``): the learner trains in
+    only in reward terms (``*_weight``, ``*_reward``, ``target_velocity``): the learner trains in
     the first source's environment, whose dynamics they all share.
     """
     if not sources:

@@ -6,21 +6,21 @@ import pytest
 import torch
 
 from pomil.envs import env_dims, executed_actions_fn, make_vec_env
-from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs
+from pomil.envs.locomotion import HOPPER_ID, HOPPER_SPEED_ID, HopperSim, hopper_kwargs, locomotion_kwargs
 from pomil.envs.wrappers import ObservationMask, resolve_observation_mask
 
 
-def _gym_envs(n, kwargs, seed):
-    envs = [gym.make(HOPPER_ID, **kwargs) for _ in range(n)]
+def _gym_envs(n, kwargs, seed, env_id=HOPPER_ID):
+    envs = [gym.make(env_id, **kwargs) for _ in range(n)]
     obs = np.stack([e.reset(seed=seed + i)[0] for i, e in enumerate(envs)])
     return envs, obs
 
 
-def _compare(kwargs, steps, n=3, seed=7, action_scale=1.5):
+def _compare(kwargs, steps, n=3, seed=7, action_scale=1.5, env_id=HOPPER_ID):
     """Step HopperSim and n gymnasium envs with the same actions; compare every output."""
     rng = np.random.default_rng(0)
-    sim = HopperSim(n, kwargs, threads=2)
-    envs, obs_gym = _gym_envs(n, kwargs, seed)
+    sim = HopperSim(n, kwargs, threads=2, env_id=env_id)
+    envs, obs_gym = _gym_envs(n, kwargs, seed, env_id)
     obs = sim.reset(seed)
     np.testing.assert_array_equal(obs, obs_gym)
     done = np.zeros(n, dtype=bool)
@@ -59,6 +59,24 @@ def test_truncation_at_1000_steps_matches_gymnasium():
     kwargs = {**hopper_kwargs("forward", "standard"), "terminate_when_unhealthy": False}
     ends = _compare(kwargs, 1000, n=2, action_scale=0.5)
     assert ends == {0: (1000, "truncated"), 1: (1000, "truncated")}
+
+
+def test_speed_task_matches_its_gymnasium_env_and_pays_for_the_target_speed():
+    kwargs = {**locomotion_kwargs(HOPPER_SPEED_ID, "none", "paper"), "target_velocity": 1.5}
+    assert kwargs == {"terminate_when_unhealthy": False, "max_episode_steps": 128, "target_velocity": 1.5}
+    ends = _compare(kwargs, 200, env_id=HOPPER_SPEED_ID)
+    assert ends == {i: (128, "truncated") for i in range(3)}
+    # the reward by hand, one step: healthy 1 - |v - 1.5| - 1e-3 * |a|^2 (Hopper-v5's ctrl_cost_weight)
+    sim = HopperSim(1, kwargs, env_id=HOPPER_SPEED_ID)
+    sim.reset(0)
+    x0, act = sim.x_position[0], np.array([[0.2, -0.1, 0.3]])
+    _, rew, _, _ = sim.step(act)
+    v = (sim.x_position[0] - x0) / sim.dt
+    assert rew[0] == pytest.approx(1.0 - abs(v - 1.5) - 1e-3 * 0.14, abs=1e-12)
+    with pytest.raises(ValueError, match="task 'none'"):
+        locomotion_kwargs(HOPPER_SPEED_ID, "forward", "paper")
+    with pytest.raises(ValueError, match="unsupported Hopper-v5 keyword.*target_velocity"):
+        HopperSim(1, kwargs)  # Hopper-v5 itself has no target speed
 
 
 def test_unseeded_reset_continues_the_generators_like_gymnasium():

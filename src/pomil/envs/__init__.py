@@ -4,7 +4,8 @@ Three families, each declared once in :data:`FAMILIES` (Gymnasium's registry is
 the model: an id maps to how to make it):
 
 * ``circles``: the 2-D multi-modal POMDP (``pomil/Circles-v0``), its own batched simulator;
-* ``hopper``: Hopper-v5 on its fast batched MuJoCo simulator (:class:`pomil.envs.locomotion.HopperSim`);
+* ``hopper``: Hopper-v5 and its speed task ``pomil/HopperSpeed-v0`` on their fast batched MuJoCo
+  simulator (:class:`pomil.envs.locomotion.HopperSim`);
 * ``gymnasium``: any other Gymnasium id with 1-D Box spaces, N copies stepped in turn
   (:class:`pomil.envs.batch.GymSim`).
 
@@ -24,10 +25,12 @@ import gymnasium as gym
 import torch
 
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
-from pomil.envs.locomotion import HOPPER_ID
+from pomil.envs.locomotion import HOPPER_ID, HOPPER_SPEED_ID
 
 if CIRCLES_ID not in gym.registry:
     gym.register(id=CIRCLES_ID, entry_point="pomil.envs.circles:CirclesEnv")
+if HOPPER_SPEED_ID not in gym.registry:
+    gym.register(id=HOPPER_SPEED_ID, entry_point="pomil.envs.locomotion:HopperSpeedEnv", max_episode_steps=1000)
 
 Executor = Callable[[torch.Tensor], torch.Tensor]
 
@@ -95,7 +98,7 @@ def _hopper_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=No
     from pomil.envs.locomotion import HopperSim
     from pomil.envs.vec import TorchVecEnv
 
-    return TorchVecEnv(HopperSim(num_envs, env_kwargs), observation_mask, device, seed)
+    return TorchVecEnv(HopperSim(num_envs, env_kwargs, env_id=env_id), observation_mask, device, seed)
 
 
 def _gym_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=None, seed=None):
@@ -129,7 +132,7 @@ FAMILIES: tuple[EnvFamily, ...] = (
     EnvFamily("circles", lambda env_id: env_id == CIRCLES_ID, _circles_make, _circles_dims,
               state_dim=lambda env_id, kwargs: 2,  # the positions
               executed_actions=_circles_executed, evaluation="circles", default_num_codes=_circles_codes),
-    EnvFamily("hopper", lambda env_id: env_id == HOPPER_ID, _hopper_make, _gym_dims, _full_observation,
+    EnvFamily("hopper", lambda env_id: env_id in (HOPPER_ID, HOPPER_SPEED_ID), _hopper_make, _gym_dims, _full_observation,
               _gym_executed, evaluation="tasks"),
     EnvFamily("gymnasium", lambda env_id: True, _gym_make, _gym_dims, _full_observation, _gym_executed,
               evaluation="tasks"),

@@ -19,6 +19,12 @@ Tasks (the paper's Hopper experiment) are constructor keywords:
 1e-3.  Settings: ``paper`` = 128-step episodes that never terminate (the
 paper's code); ``standard`` = Hopper-v5's own 1000 steps, ending when
 unhealthy.
+
+Speed tasks (``pomil/HopperSpeed-v0``, :class:`HopperSpeedEnv`): Hopper-v5's
+dynamics with the forward term replaced by ``-forward_reward_weight * |v_x -
+target_velocity|``, so an expert is paid for hopping forward at one speed.
+The same keywords as Hopper-v5 plus ``target_velocity`` (m/s), a reward term
+only: recordings at several target speeds merge into one training set.
 """
 
 from __future__ import annotations
@@ -32,6 +38,10 @@ import numpy as np
 from gymnasium.utils.seeding import np_random
 
 HOPPER_ID = "Hopper-v5"
+HOPPER_SPEED_ID = "pomil/HopperSpeed-v0"
+REWARD_KEYWORDS = ("target_velocity",)
+"""Constructor keywords that change only the reward, beyond gymnasium's ``*_weight`` / ``*_reward``
+naming (recordings that differ in them share dynamics and can be merged)."""
 TASKS = {"forward": 1.0, "backward": -1.0}
 SETTINGS = {
     "paper": {"terminate_when_unhealthy": False, "max_episode_steps": 128},
@@ -51,6 +61,33 @@ HOPPER_DEFAULTS: dict[str, Any] = {
     "exclude_current_positions_from_observation": True,
     "max_episode_steps": 1000,
 }
+
+
+SPEED_DEFAULTS: dict[str, Any] = {**HOPPER_DEFAULTS, "target_velocity": 1.0}
+"""pomil/HopperSpeed-v0's keywords: Hopper-v5's plus the target speed (m/s)."""
+
+
+def _hopper_env_class():
+    from gymnasium.envs.mujoco.hopper_v5 import HopperEnv
+
+    return HopperEnv
+
+
+class HopperSpeedEnv(_hopper_env_class()):  # type: ignore[misc]
+    """Gymnasium's Hopper-v5 paid for forward speed ``target_velocity``: the forward reward
+    ``w * v_x`` becomes ``-w * |v_x - target_velocity|`` (w = ``forward_reward_weight``); the
+    healthy reward, control cost, termination and observations are Hopper-v5's."""
+
+    def __init__(self, target_velocity: float = SPEED_DEFAULTS["target_velocity"], **kwargs: Any) -> None:
+        self.target_velocity = float(target_velocity)
+        if not np.isfinite(self.target_velocity):
+            raise ValueError(f"target_velocity must be a finite speed in m/s, got {target_velocity}")
+        super().__init__(**kwargs)
+
+    def _get_rew(self, x_velocity: float, action):
+        reward, info = super()._get_rew(x_velocity, action)
+        speed = -self._forward_reward_weight * abs(x_velocity - self.target_velocity)
+        return reward - info["reward_forward"] + speed, {**info, "reward_forward": speed}
 
 
 def hopper_kwargs(task: str, setting: str) -> dict[str, Any]:
@@ -73,6 +110,13 @@ def locomotion_kwargs(env_id: str, task: str, setting: str) -> dict[str, Any]:
     """
     if env_id == HOPPER_ID and task != "none":
         return hopper_kwargs(task, setting)
+    if env_id == HOPPER_SPEED_ID:  # Hopper-v5's keywords (its constructor takes them as **kwargs)
+        if task != "none":
+            raise ValueError(f"{env_id} has its own reward (a target speed): use task 'none' and "
+                             "--env-kwargs target_velocity=V")
+        if setting not in SETTINGS:
+            raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(SETTINGS)}")
+        return dict(SETTINGS["paper"]) if setting == "paper" else {}
     import inspect
 
     import gymnasium as gym
@@ -120,16 +164,22 @@ class HopperSim:
     terminated, truncated)``, NumPy arrays.  A copy whose episode ended is
     no longer simulated: it keeps its last observation and yields reward 0
     until the next ``reset`` (``done`` says which copies ended).
-    ``x_position`` (N,) is the torso's x coordinate.
+    ``x_position`` (N,) is the torso's x coordinate.  ``env_id`` ``pomil/HopperSpeed-v0``:
+    the speed task's reward (:class:`HopperSpeedEnv`) and its ``target_velocity`` keyword.
     """
 
-    def __init__(self, num_envs: int, env_kwargs: dict[str, Any] | None = None, threads: int | None = None) -> None:
+    def __init__(self, num_envs: int, env_kwargs: dict[str, Any] | None = None, threads: int | None = None,
+                 env_id: str = HOPPER_ID) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        unknown = sorted(set(env_kwargs or {}) - set(HOPPER_DEFAULTS))
+        if env_id not in (HOPPER_ID, HOPPER_SPEED_ID):
+            raise ValueError(f"HopperSim runs {HOPPER_ID} and {HOPPER_SPEED_ID}, not {env_id!r}")
+        defaults = SPEED_DEFAULTS if env_id == HOPPER_SPEED_ID else HOPPER_DEFAULTS
+        unknown = sorted(set(env_kwargs or {}) - set(defaults))
         if unknown:
-            raise ValueError(f"unsupported Hopper-v5 keyword(s) {unknown}; supported: {sorted(HOPPER_DEFAULTS)}")
-        self.kw = {**HOPPER_DEFAULTS, **(env_kwargs or {})}
+            raise ValueError(f"unsupported {env_id} keyword(s) {unknown}; supported: {sorted(defaults)}")
+        self.kw = {**defaults, **(env_kwargs or {})}
+        self.target_velocity = float(self.kw["target_velocity"]) if env_id == HOPPER_SPEED_ID else None
         if int(self.kw["max_episode_steps"]) < 1:
             raise ValueError(f"max_episode_steps must be >= 1, got {self.kw['max_episode_steps']}")
         self.num_envs = num_envs
@@ -216,7 +266,8 @@ class HopperSim:
         self.t += 1
         x_velocity = (self.qpos[:, 0] - x_before) / self.dt
         healthy = self.healthy()
-        reward = (self.kw["forward_reward_weight"] * x_velocity + healthy * self.kw["healthy_reward"]
+        forward = x_velocity if self.target_velocity is None else -np.abs(x_velocity - self.target_velocity)
+        reward = (self.kw["forward_reward_weight"] * forward + healthy * self.kw["healthy_reward"]
                   - self.kw["ctrl_cost_weight"] * np.square(actions).sum(axis=1))
         terminated = ~healthy if self.kw["terminate_when_unhealthy"] else np.zeros(self.num_envs, dtype=bool)
         truncated = np.full(self.num_envs,
