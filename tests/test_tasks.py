@@ -272,3 +272,36 @@ def test_reproduce_tasks_and_a_sequential_sweep_on_any_task(tmp_path):
     assert "up: progress" in (tmp_path / "sw" / "table.md").read_text() and (tmp_path / "sw" / "figure.png").exists()
     r = pomil("reproduce", "tasks", "--out", tmp_path / "x", cwd=tmp_path)
     assert r.returncode == 2 and "--demos must name" in r.stderr
+
+
+def test_speed_tasks_record_merge_and_score_behaviour_by_speed(tmp_path):
+    """pomil/HopperSpeed-v0: two target speeds, recordings named by speed, merged (the target is a
+    reward term), and `reproduce tasks` scores each code's episodes by their nearest expert speed."""
+    for v in ("0.5", "1.5"):
+        r = pomil("experts", "train", "--env-id", "pomil/HopperSpeed-v0", "--task", "none", "--env-kwargs",
+                  f"target_velocity={v},max_episode_steps=24", "--iterations", 1, "--num-envs", 2,
+                  "--out", tmp_path / f"e{v}", "--no-progress")
+        assert r.returncode == 0, r.stderr
+        r = pomil("demos", "record", "--expert", tmp_path / f"e{v}" / "checkpoint.pt", "--episodes", 2,
+                  "--out", tmp_path / f"{v}.npz")
+        assert r.returncode == 0, r.stderr
+        d = Demonstrations.load(tmp_path / f"{v}.npz")
+        assert d.metadata["label_names"] == [f"speed-{v}"] and d.obs_dim == 5  # positions only
+        speed = d.metadata["expert_speed"][f"speed-{v}"]
+        displacement = d.metadata["expert_displacement"][f"speed-{v}"]
+        assert speed == pytest.approx(displacement / (24 * 0.008))  # 24 steps of 4 x 2 ms, never ended early
+    r = pomil("demos", "merge", tmp_path / "0.5.npz", tmp_path / "1.5.npz", "--out", tmp_path / "m.npz")
+    assert r.returncode == 0, r.stderr
+    m = Demonstrations.load(tmp_path / "m.npz").metadata
+    assert set(m["expert_speed"]) == {"speed-0.5", "speed-1.5"}
+    r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res", "--learners", "bc-mlp",
+              "--seeds", 1, "--episodes-per-code", 3, "--bc-iterations", 2, "--no-progress", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    run = json.loads((tmp_path / "res" / "metrics.json").read_text())["learners"]["bc-mlp"]["runs"][0]
+    shares = run["behaviour"]["code0"]["shares"]
+    assert sum(shares.values()) == pytest.approx(1.0) and run["behaviour"]["code0"]["purity"] == max(shares.values())
+    for t in ("speed-0.5", "speed-1.5"):  # one code serves both tasks: its shares are the on-task shares
+        assert run["tasks"][t]["on_task_share"] == shares[t]
+        assert run["tasks"][t]["speed_error"] == pytest.approx(
+            abs(run["behaviour"]["code0"]["mean_speed"] - m["expert_speed"][t]))
+    assert "on-task share" in (tmp_path / "res" / "table.md").read_text()

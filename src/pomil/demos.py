@@ -85,8 +85,9 @@ def record_expert_demos(expert_path: str, episodes: int, task: str | None = None
     Observations are what the learner sees (``observation_mask``: a preset, a
     list of indices, or None for everything); ``states`` keep the full
     observation, for evaluation only.  The metadata carry the task's
-    evaluation reference: its environment keywords, the expert's mean return
-    and displacement, and the mean return of zero actions.  ``reset_seed``
+    evaluation reference: its environment keywords, the expert's mean return,
+    displacement and speed (MuJoCo: m/s over each episode), and the mean return
+    of zero actions.  ``reset_seed``
     (default ``seed``) seeds the environments' reset noise, ``seed`` the expert.
     """
     from pomil.api import TrainedPolicy
@@ -124,6 +125,7 @@ def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: 
         ret += r
         length += alive
     displacement = _x_position(sim) - x0
+    speed = displacement / (np.maximum(length, 1) * getattr(sim, "dt", np.nan))  # mean x speed per episode, m/s
     sim.close()
     obs_t, act_t = np.stack(rec_obs, 1), np.stack(rec_act, 1)  # (E, T, d)
     full_obs = np.concatenate([obs_t[e, :length[e]] for e in range(episodes)]).astype(np.float32)
@@ -143,6 +145,7 @@ def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: 
             "tasks": {task: kwargs},
             "expert_returns": {task: float(ret.mean())},
             "expert_displacement": {task: float(direction * displacement.mean())},
+            **({} if np.isnan(speed).any() else {"expert_speed": {task: float(speed.mean())}}),
             "still_returns": {task: _zero_action_return(env_id, kwargs, reference_episodes, seed)},
         },
     )
@@ -213,7 +216,8 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
         raise ValueError("the merge would hold no episodes")
     rng = np.random.default_rng(seed)
     label_names: list[str] = []
-    merged_md: dict[str, dict] = {"tasks": {}, "expert_returns": {}, "expert_displacement": {}, "still_returns": {}}
+    merged_md: dict[str, dict] = {"tasks": {}, "expert_returns": {}, "expert_displacement": {}, "expert_speed": {},
+                                  "still_returns": {}}
     weight: dict[str, int] = {}
     pieces_obs, pieces_act, pieces_states, lengths, labels = [], [], [], [], []
     for d, n, name in zip(sources, take, names):

@@ -576,10 +576,16 @@ def _curve(run_dir: Path, tasks: list[str]) -> dict[str, list[float]]:
     return curve
 
 
+SPEED_METRICS = ("on_task_share", "speed_error")
+"""Per-task figures of the behaviour by speed (:func:`pomil.eval.tasks.evaluate_tasks`, when the
+demonstrations record the experts' speeds)."""
+
+
 def task_summary(runs: list[dict[str, Any]], tasks: list[str]) -> dict[str, dict[str, list[float]]]:
-    """[mean, std] over seeds of each task's three figures."""
+    """[mean, std] over seeds of each task's three figures (and its speed figures where every run has them)."""
+    metrics = METRICS + (SPEED_METRICS if all("behaviour" in r for r in runs) else ())
     return {t: {m: [float(np.mean([r["tasks"][t][m] for r in runs])), float(np.std([r["tasks"][t][m] for r in runs]))]
-                for m in METRICS} for t in tasks}
+                for m in metrics} for t in tasks}
 
 
 def hopper_table(results: dict[str, Any]) -> str:
@@ -597,6 +603,21 @@ def hopper_table(results: dict[str, Any]) -> str:
               "Expert returns: " + ", ".join(f"{t} {v:.1f}" for t, v in reference["expert_returns"].items())
               + "; zero-action returns: " + ", ".join(f"{t} {v:.1f}" for t, v in reference["still_returns"].items())
               + "."]
+    with_speed = [n for n, r in results["learners"].items() if "on_task_share" in r["summary"][tasks[0]]]
+    if with_speed:
+        lines += ["", "| learner | " + " | ".join(f"{t}: on-task share | {t}: speed error (m/s)" for t in tasks)
+                  + " | purity of the matched codes |", "|---|" + "---|" * (2 * len(tasks) + 1)]
+        for name in with_speed:
+            r = results["learners"][name]
+            purity = [np.mean([run["behaviour"][f"code{run['tasks'][t]['code']}"]["purity"] for t in tasks])
+                      for run in r["runs"]]
+            cells = [f"{r['summary'][t][m][0]:.2f} ± {r['summary'][t][m][1]:.2f}" for t in tasks for m in SPEED_METRICS]
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {np.mean(purity):.2f} ± {np.std(purity):.2f} |")
+        lines += ["", "Each evaluation episode (every task's rollouts of a code pooled: the tasks share dynamics) is "
+                  "assigned to the task whose expert mean speed is nearest its own. On-task share: the share of the "
+                  "matched code's episodes nearest its task; speed error: |the code's mean speed - the expert's|; "
+                  "purity: a code's largest share. Expert speeds: "
+                  + ", ".join(f"{t} {v:.2f} m/s" for t, v in reference["expert_speed"].items()) + "."]
     return "\n".join(lines) + "\n"
 
 
@@ -644,6 +665,7 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
         print(f"[{n}/{total}] {r.name}: " + "; ".join(
             f"{t} (code {m['tasks'][t]['code']}): norm {m['tasks'][t]['normalised_return']:.2f}, "
             f"progress {m['tasks'][t]['progress']:.2f}, displacement {m['tasks'][t]['displacement_ratio']:.2f}"
+            + (f", on-task {m['tasks'][t]['on_task_share']:.2f}" if "on_task_share" in m["tasks"][t] else "")
             for t in tasks) + f" ({r.wall_s:.0f} s)", flush=True)
 
     done = _run_all(cfg, _tasks_job, report)

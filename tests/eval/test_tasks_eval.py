@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pomil.eval.tasks import match_codes, task_scores
+from pomil.eval.tasks import match_codes, reference_of, speed_behaviour, task_scores
 
 REFERENCE = {
     "tasks": {"forward": {"forward_reward_weight": 1.0}, "backward": {"forward_reward_weight": -1.0}},
@@ -32,3 +32,23 @@ def test_match_codes_one_to_one_beats_greedy():
 
 def test_match_codes_with_fewer_codes_than_tasks_takes_each_tasks_best():
     assert match_codes(np.array([[0.3, -1.0]])) == [0, 0]
+
+
+def test_speed_behaviour_shares_purity_and_nearest_target():
+    expert_speed = {"slow": 0.5, "mid": 1.0, "fast": 1.5}
+    speeds = np.array([0.4, 0.7, 0.76, 1.2, 1.3, 2.0, 0.0, 1.24])
+    codes = np.array([0, 0, 0, 1, 1, 1, 0, 1])
+    b = speed_behaviour(speeds, codes, expert_speed, 2)
+    # code 0: 0.4, 0.7 -> slow; 0.76 -> mid; 0.0 -> slow;  code 1: 1.2, 1.24 -> mid; 1.3, 2.0 -> fast
+    assert b["code0"]["shares"] == {"slow": 0.75, "mid": 0.25, "fast": 0.0}
+    assert b["code1"]["shares"] == {"slow": 0.0, "mid": 0.5, "fast": 0.5}
+    assert b["code0"]["purity"] == 0.75 and b["code1"]["purity"] == 0.5
+    assert b["code0"]["mean_speed"] == pytest.approx(1.86 / 4)
+    assert b["code1"]["speed_std"] == pytest.approx(np.std([1.2, 1.3, 2.0, 1.24]))
+
+
+def test_reference_keeps_expert_speeds_only_when_every_task_has_one():
+    md = {**REFERENCE, "expert_speed": {"forward": 1.8, "backward": -2.1}}
+    assert reference_of(md)["expert_speed"] == {"forward": 1.8, "backward": -2.1}
+    assert "expert_speed" not in reference_of({**REFERENCE, "expert_speed": {"forward": 1.8}})
+    assert "expert_speed" not in reference_of(REFERENCE)

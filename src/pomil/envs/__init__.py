@@ -132,8 +132,8 @@ FAMILIES: tuple[EnvFamily, ...] = (
     EnvFamily("circles", lambda env_id: env_id == CIRCLES_ID, _circles_make, _circles_dims,
               state_dim=lambda env_id, kwargs: 2,  # the positions
               executed_actions=_circles_executed, evaluation="circles", default_num_codes=_circles_codes),
-    EnvFamily("hopper", lambda env_id: env_id in (HOPPER_ID, HOPPER_SPEED_ID), _hopper_make, _gym_dims, _full_observation,
-              _gym_executed, evaluation="tasks"),
+    EnvFamily("hopper", lambda env_id: env_id in (HOPPER_ID, HOPPER_SPEED_ID), _hopper_make, _gym_dims,
+              _full_observation, _gym_executed, evaluation="tasks"),
     EnvFamily("gymnasium", lambda env_id: True, _gym_make, _gym_dims, _full_observation, _gym_executed,
               evaluation="tasks"),
 )

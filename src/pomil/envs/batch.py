@@ -68,6 +68,14 @@ class GymSim:
         return self.obs.copy(), reward, terminated, truncated
 
     @property
+    def dt(self) -> float:
+        """Seconds per step (MuJoCo environments; AttributeError elsewhere)."""
+        dt = getattr(self.envs[0].unwrapped, "dt", None)
+        if dt is None:
+            raise AttributeError(f"{self.env_id} has no time step (dt)")
+        return float(dt)
+
+    @property
     def x_position(self) -> np.ndarray:
         """qpos[0] of every copy (the torso's x on MuJoCo locomotion tasks)."""
         data = getattr(self.envs[0].unwrapped, "data", None)

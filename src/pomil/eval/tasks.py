@@ -13,6 +13,14 @@ Codes are assigned to tasks by the one-to-one matching with the highest total
 progress score (all permutations; K and the number of tasks are small).  A
 policy with fewer codes than tasks (BC, GAIL: one) gets, for each task, its
 best code.
+
+Behaviour by speed, when the demonstrations record the experts' mean speeds
+(``expert_speed``, m/s; MuJoCo tasks): each of a code's episodes (all tasks'
+rollouts pooled: the tasks share dynamics) is assigned to the task whose
+expert speed is nearest its own mean speed.  Per code: the shares and the
+purity (the largest share); per task, for its matched code: the share of
+that code's episodes nearest this task (``on_task_share``) and the speed
+error |mean speed - expert speed|.
 """
 
 from __future__ import annotations
@@ -34,8 +42,8 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
                        observation_mask: list[int] | None = None, env_id: str | None = None) -> dict[str, np.ndarray]:
     """One episode in each of ``episodes`` copies of the policy's environment
     (or ``env_id``) built with ``env_kwargs``; per episode: ``returns``,
-    ``displacement`` (final minus initial torso x; NaN off MuJoCo) and
-    ``length`` (steps)."""
+    ``displacement`` (final minus initial torso x; NaN off MuJoCo), ``length``
+    (steps) and ``speed`` (displacement / duration, m/s; NaN off MuJoCo)."""
     env = make_vec_env(env_id or policy.env["id"], env_kwargs, episodes, "cpu", observation_mask, seed=seed)
 
     def x_position() -> np.ndarray:
@@ -55,7 +63,9 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
             obs, r, _, _ = env.step(torch.as_tensor(policy.act(obs, deterministic)))
             ret += r.numpy()
             length += alive
-        return {"returns": ret, "displacement": x_position() - x0, "length": length}
+        displacement = x_position() - x0
+        speed = displacement / (np.maximum(length, 1) * getattr(env.sim, "dt", np.nan))
+        return {"returns": ret, "displacement": displacement, "length": length, "speed": speed}
     finally:
         env.close()
 
@@ -89,13 +99,32 @@ def match_codes(score: np.ndarray) -> list[int]:
     return [int(c) for c in best]
 
 
+def speed_behaviour(speeds: np.ndarray, codes: np.ndarray, expert_speed: dict[str, float], k: int) -> dict[str, Any]:
+    """Per code: its episodes' mean speed, the share nearest each task's expert speed, and the purity.
+
+    ``speeds`` (n,) m/s per episode, ``codes`` (n,) the code of each episode."""
+    tasks = list(expert_speed)
+    targets = np.array([expert_speed[t] for t in tasks])
+    nearest = np.abs(speeds[:, None] - targets[None, :]).argmin(axis=1)
+    out = {}
+    for c in range(k):
+        sel = codes == c
+        shares = {t: float((nearest[sel] == j).mean()) for j, t in enumerate(tasks)}
+        out[f"code{c}"] = {"mean_speed": float(speeds[sel].mean()), "speed_std": float(speeds[sel].std()),
+                           "shares": shares, "purity": max(shares.values())}
+    return out
+
+
 def reference_of(metadata: dict[str, Any], source: str = "demonstrations") -> dict[str, Any]:
-    """The task reference (tasks, expert and zero-action returns, expert displacement) in demo metadata."""
+    """The task reference (tasks, expert and zero-action returns, expert displacement, and the
+    expert speeds where recorded) in demo metadata."""
     keys = ("tasks", "expert_returns", "still_returns", "expert_displacement")
     missing = [k for k in keys if k not in metadata]
     if missing:
         raise PomilError(f"{source}: metadata lacks {missing}; record them with `pomil demos hopper`")
-    return {k: metadata[k] for k in keys}
+    speeds = metadata.get("expert_speed") or {}
+    return {**{k: metadata[k] for k in keys},
+            **({"expert_speed": speeds} if set(speeds) == set(metadata["tasks"]) else {})}
 
 
 def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_per_code: int = 20, seed: int = 0,
@@ -107,9 +136,11 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
     mask = policy.env.get("observation_mask")
     per_pair: dict[str, dict[str, dict[str, float]]] = {}
     progress = np.zeros((k, len(tasks)))
+    speeds = []
     for j, task in enumerate(tasks):
         roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed, deterministic, codes,
                                   mask)
+        speeds.append(roll["speed"])
         for c in range(k):
             sel = codes == c
             s = task_scores(roll["returns"][sel].mean(), roll["displacement"][sel].mean(), reference, task)
@@ -120,5 +151,14 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
     per_task = {task: {"code": c, **per_pair[f"code{c}"][task]} for task, c in zip(tasks, assigned)}
     summary = {f"min_{m}": min(per_task[t][m] for t in tasks) for m in ("normalised_return", "progress",
                                                                         "displacement_ratio")}
+    behaviour = None
+    if "expert_speed" in reference and not np.isnan(np.concatenate(speeds)).any():
+        behaviour = speed_behaviour(np.concatenate(speeds), np.tile(codes, len(tasks)), reference["expert_speed"], k)
+        for task, c in zip(tasks, assigned):
+            per_task[task]["on_task_share"] = behaviour[f"code{c}"]["shares"][task]
+            per_task[task]["speed_error"] = abs(behaviour[f"code{c}"]["mean_speed"] - reference["expert_speed"][task])
+        summary.update(min_on_task_share=min(per_task[t]["on_task_share"] for t in tasks),
+                       max_speed_error=max(per_task[t]["speed_error"] for t in tasks))
     return {"tasks": per_task, "codes": per_pair, "num_codes": policy.num_codes, "episodes_per_code": episodes_per_code,
-            "deterministic": deterministic, "seed": seed, **summary}
+            "deterministic": deterministic, "seed": seed, **summary,
+            **({} if behaviour is None else {"behaviour": behaviour})}
