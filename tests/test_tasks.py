@@ -305,3 +305,20 @@ def test_speed_tasks_record_merge_and_score_behaviour_by_speed(tmp_path):
         assert run["tasks"][t]["speed_error"] == pytest.approx(
             abs(run["behaviour"]["code0"]["mean_speed"] - m["expert_speed"][t]))
     assert "on-task share" in (tmp_path / "res" / "table.md").read_text()
+
+
+def test_dart_recording_executes_noisy_actions_and_records_the_experts():
+    from pomil.api import TrainedPolicy
+    from pomil.demos import record_expert_demos
+
+    path = str(ROOT / "data" / "experts" / "hopper-forward.pt")
+    clean = record_expert_demos(path, 3, seed=0)
+    noisy = record_expert_demos(path, 3, seed=0, action_noise=0.3)
+    np.testing.assert_array_equal(clean.observations[0], noisy.observations[0])  # same reset, then apart
+    assert np.abs(clean.states - noisy.states).max() > 0.1
+    expert = TrainedPolicy.load(path)  # an MLP on the full observation: each recorded action is its own
+    expert.reset(len(noisy.states))
+    np.testing.assert_allclose(noisy.actions, expert.act(noisy.states, deterministic=True), rtol=0, atol=1e-6)
+    assert "DART" in noisy.metadata["source"] and "DART" not in clean.metadata["source"]
+    with pytest.raises(ValueError, match="action_noise"):
+        record_expert_demos(path, 1, action_noise=-0.1)

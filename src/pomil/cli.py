@@ -119,6 +119,9 @@ class HopperDemosConfig:
     observation_mask: str = option("positions-only",
                                    "what the learner observes: positions-only, or comma-separated indices")
     seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
+    action_noise: float = option(0.0, "std of Gaussian noise added to the executed actions while the expert's own "
+                                      "actions are recorded (DART: demonstrations with recoveries); 0: none",
+                                 within="[0, inf)")
 
 
 def _mask_arg(text: str) -> str | list[int] | None:
@@ -141,6 +144,9 @@ class RecordDemosConfig:
     observation_mask: str = option("positions-only",
                                    "what the learner observes: positions-only, comma-separated indices, or '' (all)")
     seed: int = option(0, "random seed (reset noise)", within="[0, 4294967295]")
+    action_noise: float = option(0.0, "std of Gaussian noise added to the executed actions while the expert's own "
+                                      "actions are recorded (DART: demonstrations with recoveries); 0: none",
+                                 within="[0, inf)")
 
 
 def cmd_demos_record(args: argparse.Namespace) -> int:
@@ -153,7 +159,7 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
         raise PomilError(f"{cfg.expert}: no expert checkpoint there (train one: pomil experts train --env-id ...)")
     try:
         demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None, _mask_arg(cfg.observation_mask),
-                                    cfg.seed)
+                                    cfg.seed, action_noise=cfg.action_noise)
     except ValueError as err:
         raise PomilError(f"demos record: {err}") from None
     demos.save(cfg.out)
@@ -221,7 +227,8 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
             raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
                              f"{task})")
     try:
-        demos = record_hopper_demos(experts, cfg.episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask))
+        demos = record_hopper_demos(experts, cfg.episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask),
+                                    action_noise=cfg.action_noise)
     except ValueError as err:
         raise PomilError(f"demos hopper: {err}") from None
     demos.save(cfg.out)

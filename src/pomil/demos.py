@@ -78,7 +78,8 @@ def record_circles_demos(
 
 def record_expert_demos(expert_path: str, episodes: int, task: str | None = None,
                         observation_mask: str | list[int] | None = "positions-only", seed: int = 0,
-                        reset_seed: int | None = None, reference_episodes: int = 100) -> Demonstrations:
+                        reset_seed: int | None = None, reference_episodes: int = 100,
+                        action_noise: float = 0.0) -> Demonstrations:
     """``episodes`` deterministic episodes of one expert checkpoint on its own
     environment (id and keywords from the checkpoint), labelled ``task``.
 
@@ -89,6 +90,12 @@ def record_expert_demos(expert_path: str, episodes: int, task: str | None = None
     displacement and speed (MuJoCo: m/s over each episode), and the mean return
     of zero actions.  ``reset_seed``
     (default ``seed``) seeds the environments' reset noise, ``seed`` the expert.
+
+    ``action_noise`` > 0 records demonstrations with recoveries (DART, Laskey et al. 2017): the
+    environment carries out the expert's action plus N(0, action_noise^2) noise per dimension,
+    and the expert's own (noise-free) action is recorded, so the episodes visit states off the
+    expert's path and show how the expert acts there.  The expert returns in the metadata are
+    those of the noisy episodes.
     """
     from pomil.api import TrainedPolicy
 
@@ -97,16 +104,19 @@ def record_expert_demos(expert_path: str, episodes: int, task: str | None = None
         raise PomilError(f"{expert_path}: circle policies are recorded with `pomil demos circles`")
     return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes,
                           task or _task_name(expert.env.get("kwargs") or {}), observation_mask, seed,
-                          seed if reset_seed is None else reset_seed, reference_episodes)
+                          seed if reset_seed is None else reset_seed, reference_episodes, action_noise)
 
 
 def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: str, observation_mask,
-                   seed: int, reset_seed: int, reference_episodes: int) -> Demonstrations:
+                   seed: int, reset_seed: int, reference_episodes: int, action_noise: float = 0.0) -> Demonstrations:
     from pomil.envs import make_vec_env
     from pomil.envs.wrappers import resolve_observation_mask
 
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if not (np.isfinite(action_noise) and action_noise >= 0):
+        raise ValueError(f"action_noise must be a standard deviation >= 0, got {action_noise}")
+    noise = np.random.default_rng([seed, 1]) if action_noise > 0 else None
     env_id = expert.env["id"]
     mask = resolve_observation_mask(env_id, kwargs, observation_mask)
     expert_mask = expert.env.get("observation_mask")
@@ -121,7 +131,10 @@ def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: 
         act = expert.act(seen.astype(np.float32), deterministic=True)
         rec_obs.append(full.copy())
         rec_act.append(act)
-        full, r, _, _ = sim.step(act.astype(np.float64))
+        executed = act.astype(np.float64)
+        if noise is not None:  # DART: carry out a perturbed action, record the expert's
+            executed = executed + action_noise * noise.standard_normal(executed.shape)
+        full, r, _, _ = sim.step(executed)
         ret += r
         length += alive
     displacement = _x_position(sim) - x0
@@ -140,7 +153,8 @@ def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: 
             "env_id": env_id,
             "env_kwargs": kwargs,
             "observation_mask": mask,
-            "source": f"pomil expert {expert_path}, deterministic, seed={seed}",
+            "source": f"pomil expert {expert_path}, deterministic, seed={seed}"
+                      + (f", executed with N(0, {action_noise:g}^2) action noise (DART)" if action_noise else ""),
             "label_names": [task],
             "tasks": {task: kwargs},
             "expert_returns": {task: float(ret.mean())},
@@ -270,10 +284,10 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
 
 def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", seed: int = 0,
                         observation_mask: str | list[int] = "positions-only",
-                        reference_episodes: int = 100) -> Demonstrations:
+                        reference_episodes: int = 100, action_noise: float = 0.0) -> Demonstrations:
     """Equal numbers of episodes from each Hopper task's expert (checkpoint paths
     by task name), shuffled: :func:`record_expert_demos` in the task's
-    ``setting`` for each, then :func:`merge_demos`."""
+    ``setting`` for each (``action_noise``: its DART recording), then :func:`merge_demos`."""
     from pomil.api import TrainedPolicy
     from pomil.envs.locomotion import hopper_kwargs
 
@@ -284,7 +298,7 @@ def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting
             raise PomilError(f"{path}: expected a Hopper expert on the full 11-number observation, got obs_dim "
                              f"{expert.obs_dim}")
         recordings.append(_record_policy(expert, path, hopper_kwargs(task, setting), episodes_per_task, task,
-                                         observation_mask, seed, seed + 1000 * j, reference_episodes))
+                                         observation_mask, seed, seed + 1000 * j, reference_episodes, action_noise))
     demos = merge_demos(recordings, seed=seed, names=list(experts.values()))
     return Demonstrations(demos.observations, demos.actions, demos.episode_bounds, demos.labels, demos.states,
                           {**demos.metadata, "setting": setting})

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Speed modes: where the belief should matter.  Three PPO experts hop forward at three target
+# speeds (pomil/HopperSpeed-v0: Hopper-v5 paid -|v_x - target| instead of v_x), 256-step episodes
+# that do not end when unhealthy.  Their positions-only demonstrations are merged without labels,
+# and `pomil reproduce tasks` trains BC-MLP, BC-GRU, InfoGAIL (MLP) and InfoGAIL-POMDP on them and
+# scores every code by speed (on-task share, purity, speed error) and normalised return.
+# Positions alone do not show a speed: a policy has to infer it from the history.
+# Usage: bash scripts/hopper_speed.sh [extra `pomil reproduce tasks` flags, e.g. --seeds 1 --ray]
+# Writes runs/results/hopper-speed (the committed copy: results/hopper-speed, with --out results/hopper-speed).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+pomil=.venv/bin/pomil
+SPEEDS="0.6 1.2 1.8"
+STEPS=256
+for v in $SPEEDS; do
+  if [ ! -f "data/experts/hopper-speed-$v.pt" ]; then
+    $pomil experts train --env-id pomil/HopperSpeed-v0 --task none --setting paper \
+      --env-kwargs "target_velocity=$v,max_episode_steps=$STEPS" --iterations 300 --out "runs/experts/hopper-speed-$v"
+    mkdir -p data/experts  # ship the policy alone (no optimiser state), with its evaluation and training log
+    .venv/bin/python -c "import sys; from pomil import TrainedPolicy; TrainedPolicy.load(sys.argv[1]).save(sys.argv[2])" \
+      "runs/experts/hopper-speed-$v/checkpoint.pt" "data/experts/hopper-speed-$v.pt"
+    cp "runs/experts/hopper-speed-$v/evaluation.json" "data/experts/hopper-speed-$v-evaluation.json"
+    cp "runs/experts/hopper-speed-$v/metrics.csv" "data/experts/hopper-speed-$v-metrics.csv"
+  fi
+done
+demos=runs/demos/hopper-speed.npz
+if [ ! -f "$demos" ]; then
+  recordings=()
+  for v in $SPEEDS; do
+    $pomil demos record --expert "data/experts/hopper-speed-$v.pt" --episodes 200 --observation-mask positions-only \
+      --seed 0 --out "runs/demos/hopper-speed-$v.npz"
+    recordings+=("runs/demos/hopper-speed-$v.npz")
+  done
+  $pomil demos merge "${recordings[@]}" --out "$demos"
+fi
+$pomil reproduce tasks --demos "$demos" --out runs/results/hopper-speed --runs runs/hopper-speed \
+  --learners bc-mlp,bc-gru,infogail,infogail-pomdp --seeds 3 "$@"
