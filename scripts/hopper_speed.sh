@@ -16,7 +16,7 @@ STEPS=256
 for v in $SPEEDS; do
   if [ ! -f "data/experts/hopper-speed-$v.pt" ]; then
     $pomil experts train --env-id pomil/HopperSpeed-v0 --task none --setting paper \
-      --env-kwargs "target_velocity=$v,max_episode_steps=$STEPS" --iterations 300 --out "runs/experts/hopper-speed-$v"
+      --env-kwargs "target_velocity=$v,max_episode_steps=$STEPS" --iterations 150 --out "runs/experts/hopper-speed-$v"
     mkdir -p data/experts  # ship the policy alone (no optimiser state), with its evaluation and training log
     .venv/bin/python -c "import sys; from pomil import TrainedPolicy; TrainedPolicy.load(sys.argv[1]).save(sys.argv[2])" \
       "runs/experts/hopper-speed-$v/checkpoint.pt" "data/experts/hopper-speed-$v.pt"

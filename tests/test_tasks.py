@@ -305,6 +305,9 @@ def test_speed_tasks_record_merge_and_score_behaviour_by_speed(tmp_path):
         assert run["tasks"][t]["speed_error"] == pytest.approx(
             abs(run["behaviour"]["code0"]["mean_speed"] - m["expert_speed"][t]))
     assert "on-task share" in (tmp_path / "res" / "table.md").read_text()
+    r = pomil("evaluate", tmp_path / "res" / "policies" / "bc-mlp-seed0.pt", "--demos", tmp_path / "m.npz",
+              "--episodes-per-code", 2)
+    assert r.returncode == 0 and "on-task share" in r.stdout and "purity" in r.stdout, r.stderr
 
 
 def test_dart_recording_executes_noisy_actions_and_records_the_experts():

@@ -363,7 +363,12 @@ def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
           f"{'deterministic' if m['deterministic'] else 'stochastic'}")
     for task, r in m["tasks"].items():
         print(f"{task:<9s} code {r['code']}  return {r['return']:7.1f}  normalised {r['normalised_return']:.2f}  "
-              f"progress {r['progress']:.2f}  displacement ratio {r['displacement_ratio']:.2f}")
+              f"progress {r['progress']:.2f}  displacement ratio {r['displacement_ratio']:.2f}"
+              + (f"  on-task share {r['on_task_share']:.2f}  speed error {r['speed_error']:.2f} m/s"
+                 if "on_task_share" in r else ""))
+    for code, b in (m.get("behaviour") or {}).items():
+        print(f"{code:<9s} mean speed {b['mean_speed']:.2f} ± {b['speed_std']:.2f} m/s  nearest expert speed: "
+              + ", ".join(f"{t} {v:.2f}" for t, v in b["shares"].items()) + f"  purity {b['purity']:.2f}")
     return 0
 
 
