@@ -35,6 +35,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
+from gymnasium.envs.mujoco.hopper_v5 import HopperEnv
 from gymnasium.utils.seeding import np_random
 
 HOPPER_ID = "Hopper-v5"
@@ -67,13 +68,7 @@ SPEED_DEFAULTS: dict[str, Any] = {**HOPPER_DEFAULTS, "target_velocity": 1.0}
 """pomil/HopperSpeed-v0's keywords: Hopper-v5's plus the target speed (m/s)."""
 
 
-def _hopper_env_class():
-    from gymnasium.envs.mujoco.hopper_v5 import HopperEnv
-
-    return HopperEnv
-
-
-class HopperSpeedEnv(_hopper_env_class()):  # type: ignore[misc]
+class HopperSpeedEnv(HopperEnv):
     """Gymnasium's Hopper-v5 paid for forward speed ``target_velocity``: the forward reward
     ``w * v_x`` becomes ``-w * |v_x - target_velocity|`` (w = ``forward_reward_weight``); the
     healthy reward, control cost, termination and observations are Hopper-v5's."""
