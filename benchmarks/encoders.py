@@ -10,6 +10,7 @@ table per task, mean ± std over seeds, and writes them as JSON::
 
     .venv/bin/python benchmarks/encoders.py                       # 3 seeds, both tasks, 30 iterations: hours
     .venv/bin/python benchmarks/encoders.py --tasks circles --seeds 5 --encoders gru,attention
+    .venv/bin/python benchmarks/encoders.py --tasks circles --out enc.json --resume   # continue a cut-off one
     .venv/bin/python benchmarks/encoders.py --iterations 1 --seeds 1 --episodes-per-code 2 \\
         --set num_envs=4 --set hidden_size=8 --set bc_init_iterations=2 --set posterior_init_iterations=1 \\
         --set critic_batch=4 --out /tmp/encoders.json            # a smoke run (seconds)
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 import tempfile
 import time
@@ -92,6 +94,8 @@ def main() -> None:
     ap.add_argument("--circles-demos", default=TASKS["circles"])
     ap.add_argument("--hopper-demos", default=TASKS["hopper"])
     ap.add_argument("--out", default="results/encoders/metrics.json", help="JSON file")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the runs already in --out (a benchmark cut off part way) and train only the others")
     args = ap.parse_args()
     encoders, tasks = args.encoders.split(","), args.tasks.split(",")
     for name, chosen, allowed in (("encoder", encoders, ENCODERS), ("task", tasks, TASKS)):
@@ -100,6 +104,12 @@ def main() -> None:
     args.demos = {"circles": args.circles_demos, "hopper": args.hopper_demos}
     results: dict[str, Any] = {"command": " ".join(["benchmarks/encoders.py", *sys.argv[1:]]), "seeds": args.seeds,
                                "tasks": {}}
+    done: dict[tuple[str, str, int], dict[str, Any]] = {}
+    if args.resume and Path(args.out).is_file():  # the runs an earlier (cut-off) benchmark wrote
+        earlier = json.loads(Path(args.out).read_text())
+        done = {(task, encoder, r["seed"]): r for task, per in earlier.get("tasks", {}).items()
+                for encoder, e in per.items() for r in e.get("runs", [])}
+        print(f"--resume: {len(done)} run(s) from {args.out} kept", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         for task in tasks:
             per_encoder: dict[str, Any] = {}
@@ -107,7 +117,8 @@ def main() -> None:
             for encoder in encoders:
                 runs = []
                 for seed in range(args.seeds):
-                    row = train_one(task, encoder, seed, args, episodes, Path(tmp) / task / encoder / str(seed))
+                    row = done.get((task, encoder, seed)) or train_one(task, encoder, seed, args, episodes,
+                                                                        Path(tmp) / task / encoder / str(seed))
                     runs.append(row)
                     results["tasks"].setdefault(task, {})[encoder] = {"runs": runs}
                     write_json(Path(args.out), {**results, "partial": True})  # a cut-off benchmark keeps its runs
