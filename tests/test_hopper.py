@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from pomil.api import TrainedPolicy
@@ -108,3 +109,9 @@ def test_standard_setting_records_from_the_shipped_standard_experts(tmp_path):
     assert demos.metadata["setting"] == "standard" and demos.num_episodes == 4
     assert demos.metadata["expert_returns"]["forward"] > 1500 and demos.metadata["expert_returns"]["backward"] > 1500
     assert demos.episode_lengths.max() > 128
+    assert "N(0, 0.1^2) action noise (DART)" in demos.metadata["merged_from"][0]["source"]  # the setting's noise
+    clean = hopper_demos(HopperReproConfig(setting="standard", demos=str(tmp_path / "c.npz"), demo_episodes=1,
+                                           demo_action_noise=0))
+    assert "DART" not in Demonstrations.load(clean).metadata["merged_from"][0]["source"]
+    with pytest.raises(ValueError, match="demo_action_noise"):
+        HopperReproConfig(setting="standard", demo_action_noise=-0.5)

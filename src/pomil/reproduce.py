@@ -512,6 +512,10 @@ def reproduce_circles_continuous(cfg: CirclesContinuousConfig) -> dict[str, Any]
 HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper' else '-' + setting}-{task}.pt"
                             for task in ("forward", "backward")} for setting in ("paper", "standard")}
 METRICS = ("normalised_return", "progress", "displacement_ratio")
+DEMO_ACTION_NOISE = {"paper": 0.0, "standard": 0.1}
+"""Per setting, the DART action noise with which missing demonstrations are recorded: the standard setting's
+episodes end when the hopper falls, and demonstrations with recoveries keep its clones up (docs/hopper.md);
+0.1 is the largest noise measured that leaves the experts' returns as they were."""
 
 
 @dataclass(frozen=True)
@@ -523,6 +527,9 @@ class HopperReproConfig(LearnerRuns):
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
     demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
     demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded", within="[1, inf)")
+    demo_action_noise: float = option(-1.0, "DART action noise when the demonstrations are recorded (pomil demos "
+                                            "hopper --action-noise); -1: the setting's, paper 0, standard 0.1",
+                                      within="[-1, inf)")
     seeds: int = option(3, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
     episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)",
                                     within="[1, inf)")
@@ -531,6 +538,8 @@ class HopperReproConfig(LearnerRuns):
     def __post_init__(self) -> None:
         if self.setting not in ("paper", "standard"):
             raise ValueError(f"setting must be 'paper' or 'standard', got {self.setting!r}")
+        if self.demo_action_noise < 0 and self.demo_action_noise != -1:
+            raise ValueError(f"demo_action_noise must be -1 (the setting's) or >= 0, got {self.demo_action_noise}")
         check_runs(self)
 
     @property
@@ -557,9 +566,11 @@ def hopper_demos(cfg: HopperReproConfig) -> Path:
     if missing:
         raise PomilError(f"{path} is missing and so are the experts to record it from ({', '.join(missing)}); "
                          f"train them with `pomil experts hopper --task forward|backward --setting {cfg.setting}`")
-    demos = record_hopper_demos(experts, cfg.demo_episodes, cfg.setting)
+    noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.demo_action_noise == -1 else cfg.demo_action_noise
+    demos = record_hopper_demos(experts, cfg.demo_episodes, cfg.setting, action_noise=noise)
     demos.save(path)
-    print(f"recorded {path}: {demos.num_episodes} expert episodes", flush=True)
+    dart = f" (DART action noise {noise:g})" if noise else ""
+    print(f"recorded {path}: {demos.num_episodes} expert episodes{dart}", flush=True)
     return path
 
 
