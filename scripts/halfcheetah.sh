@@ -11,11 +11,7 @@ pomil=.venv/bin/pomil
 for task in forward backward; do
   if [ ! -f "data/experts/halfcheetah-$task.pt" ]; then
     $pomil experts train --env-id HalfCheetah-v5 --task "$task" --setting paper --out "runs/experts/halfcheetah-$task"
-    mkdir -p data/experts  # ship the policy alone (no optimiser state), with its evaluation and training log
-    .venv/bin/python -c "import sys; from pomil import TrainedPolicy; TrainedPolicy.load(sys.argv[1]).save(sys.argv[2])" \
-      "runs/experts/halfcheetah-$task/checkpoint.pt" "data/experts/halfcheetah-$task.pt"
-    cp "runs/experts/halfcheetah-$task/evaluation.json" "data/experts/halfcheetah-$task-evaluation.json"
-    cp "runs/experts/halfcheetah-$task/metrics.csv" "data/experts/halfcheetah-$task-metrics.csv"
+    bash scripts/ship_expert.sh "runs/experts/halfcheetah-$task" "halfcheetah-$task"
   fi
 done
 if [ ! -f data/halfcheetah-paper.npz ]; then

@@ -17,11 +17,7 @@ for v in $SPEEDS; do
   if [ ! -f "data/experts/hopper-speed-$v.pt" ]; then
     $pomil experts train --env-id pomil/HopperSpeed-v0 --task none --setting paper \
       --env-kwargs "target_velocity=$v,max_episode_steps=$STEPS" --iterations 150 --out "runs/experts/hopper-speed-$v"
-    mkdir -p data/experts  # ship the policy alone (no optimiser state), with its evaluation and training log
-    .venv/bin/python -c "import sys; from pomil import TrainedPolicy; TrainedPolicy.load(sys.argv[1]).save(sys.argv[2])" \
-      "runs/experts/hopper-speed-$v/checkpoint.pt" "data/experts/hopper-speed-$v.pt"
-    cp "runs/experts/hopper-speed-$v/evaluation.json" "data/experts/hopper-speed-$v-evaluation.json"
-    cp "runs/experts/hopper-speed-$v/metrics.csv" "data/experts/hopper-speed-$v-metrics.csv"
+    bash scripts/ship_expert.sh "runs/experts/hopper-speed-$v" "hopper-speed-$v"
   fi
 done
 demos=runs/demos/hopper-speed.npz
