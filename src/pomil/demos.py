@@ -9,7 +9,7 @@ import torch
 
 from pomil.data import Demonstrations
 from pomil.envs.circles import CircleExperts, CirclesSpec, CirclesVecEnv, ENV_ID, DEFAULT_EXPERT_NOISE
-from pomil.envs.locomotion import HOPPER_ID, REWARD_KEYWORDS
+from pomil.envs.locomotion import HOPPER_ID, REWARD_KEYWORDS, task_name
 from pomil.errors import PomilError
 
 
@@ -103,7 +103,7 @@ def record_expert_demos(expert_path: str, episodes: int, task: str | None = None
     if expert.env.get("id") == ENV_ID:
         raise PomilError(f"{expert_path}: circle policies are recorded with `pomil demos circles`")
     return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes,
-                          task or _task_name(expert.env.get("kwargs") or {}), observation_mask, seed,
+                          task or task_name(expert.env.get("kwargs") or {}), observation_mask, seed,
                           seed if reset_seed is None else reset_seed, reference_episodes, action_noise)
 
 
@@ -163,13 +163,6 @@ def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: 
             "still_returns": {task: _zero_action_return(env_id, kwargs, reference_episodes, seed)},
         },
     )
-
-
-def _task_name(kwargs: dict) -> str:
-    if "target_velocity" in kwargs:  # pomil/HopperSpeed-v0
-        return f"speed-{float(kwargs['target_velocity']):g}"
-    w = kwargs.get("forward_reward_weight")
-    return "task" if w is None or w == 0 else ("forward" if w > 0 else "backward")
 
 
 def _x_position(sim) -> np.ndarray:

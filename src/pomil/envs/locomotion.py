@@ -85,6 +85,15 @@ class HopperSpeedEnv(HopperEnv):
         return reward - info["reward_forward"] + speed, {**info, "reward_forward": speed}
 
 
+def task_name(kwargs: dict[str, Any]) -> str:
+    """A recording's task name from its environment keywords: ``speed-V`` (pomil/HopperSpeed-v0),
+    ``forward`` / ``backward`` (the sign of forward_reward_weight), else ``task``."""
+    if "target_velocity" in kwargs:
+        return f"speed-{float(kwargs['target_velocity']):g}"
+    w = kwargs.get("forward_reward_weight")
+    return "task" if w is None or w == 0 else ("forward" if w > 0 else "backward")
+
+
 def hopper_kwargs(task: str, setting: str) -> dict[str, Any]:
     """``gymnasium.make("Hopper-v5", **kwargs)`` keywords of a task in a setting."""
     if task not in TASKS:
@@ -105,13 +114,9 @@ def locomotion_kwargs(env_id: str, task: str, setting: str) -> dict[str, Any]:
     """
     if env_id == HOPPER_ID and task != "none":
         return hopper_kwargs(task, setting)
-    if env_id == HOPPER_SPEED_ID:  # Hopper-v5's keywords (its constructor takes them as **kwargs)
-        if task != "none":
-            raise ValueError(f"{env_id} has its own reward (a target speed): use task 'none' and "
-                             "--env-kwargs target_velocity=V")
-        if setting not in SETTINGS:
-            raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(SETTINGS)}")
-        return dict(SETTINGS["paper"]) if setting == "paper" else {}
+    if env_id == HOPPER_SPEED_ID and task != "none":
+        raise ValueError(f"{env_id} has its own reward (a target speed): use task 'none' and "
+                         "--env-kwargs target_velocity=V")
     import inspect
 
     import gymnasium as gym
@@ -124,7 +129,13 @@ def locomotion_kwargs(env_id: str, task: str, setting: str) -> dict[str, Any]:
     if isinstance(entry, str):
         module, _, name = entry.partition(":")
         entry = getattr(__import__(module, fromlist=[name]), name)
-    accepted = set(inspect.signature(entry).parameters)
+    # keywords of the constructor and, where it passes **kwargs on, of its base classes' (HopperSpeedEnv)
+    accepted: set[str] = set()
+    for cls in getattr(entry, "__mro__", (entry,)):
+        params = inspect.signature(cls).parameters
+        accepted |= set(params)
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            break
     kw: dict[str, Any] = {}
     if task != "none":
         if "forward_reward_weight" not in accepted:
