@@ -2,17 +2,20 @@
 
 import dataclasses
 import json
+from pathlib import Path
 
 import pytest
 
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.api import TrainedPolicy
 from pomil.cli import main
-from pomil.config import from_dict
+from pomil.config import from_dict, resolved
 from pomil.envs.circles import Circle, CirclesSpec
 from pomil.errors import PomilError
 from pomil.eval.circles import evaluate_circles
 from pomil.reproduce import MODES_CASES, CirclesReproConfig, adversarial_config, modes_success
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
@@ -23,11 +26,11 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     assert (cfg.bc_init_lr, cfg.bc_init_lr_decay, cfg.bc_init_log_std_lr_scale, cfg.bc_init_fit_log_std) == (
         1e-3, False, 1.0, False)
     assert cfg.mixture_balance == "dataset"
-    assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "default")
-    # a reproduction adds only the run's own fields to the defaults
+    assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "auto")
+    # a reproduction adds only the run's own fields to the defaults (auto: the circles' default preset)
     repro = adversarial_config(CirclesReproConfig(), "infogail-pomdp", 3, tmp_path)
     plain = AdversarialConfig(demos=repro.demos, out=str(tmp_path), seed=3)
-    assert repro == plain
+    assert repro.preset == "default" and repro == resolved(plain) == dataclasses.replace(plain, preset="default")
 
 
 def test_paper_text_preset_gives_the_texts_settings_and_flags_override_it():
@@ -39,10 +42,11 @@ def test_paper_text_preset_gives_the_texts_settings_and_flags_override_it():
                                                                                                  0.0, 0)
     assert (cfg.gamma, cfg.gae_lambda, cfg.hidden_size) == (0.99, 0.95, 128)  # the text's, and the defaults too
     assert from_dict(AdversarialConfig, {"preset": "paper-text", "lr": 1e-3}).lr == 1e-3  # the user's values win
-    assert from_dict(AdversarialConfig, {"preset": "default"}) == AdversarialConfig()
+    assert from_dict(AdversarialConfig, {"preset": "default"}) == dataclasses.replace(AdversarialConfig(),
+                                                                                         preset="default")
     with pytest.raises(PomilError,
-                       match="config key 'preset': expected one of \\['default', 'paper-text', "
-                             "'fast-warm-start'\\], got 'paper'"):
+                       match="config key 'preset': expected one of \\['auto', 'default', 'paper-text', "
+                             "'fast-warm-start', 'terminating'\\], got 'paper'"):
         from_dict(AdversarialConfig, {"preset": "paper"})
 
 
@@ -56,6 +60,76 @@ def test_preset_flag_is_recorded_in_config_json(demos_path, tmp_path):
     assert written["preset"] == "paper-text"
     assert written["critic_optimizer"] == "rmsprop" and written["weight_clip"] == 0.01
     assert written["bc_init_iterations"] == 1  # the flag over the preset
+
+
+@pytest.fixture(scope="module")
+def standard_hopper_demos(tmp_path_factory):
+    """The paper's Hopper demonstrations relabelled as recorded in Hopper-v5's own setting (episodes end when the
+    hopper is unhealthy): only the metadata matter to the recipe."""
+    from pomil.data import Demonstrations
+
+    demos = Demonstrations.load(ROOT / "data" / "hopper-paper.npz")
+    standard = {"terminate_when_unhealthy": True, "max_episode_steps": 1000}
+    md = {**demos.metadata, "env_kwargs": {**demos.metadata["env_kwargs"], **standard},
+          "tasks": {k: {**v, **standard} for k, v in demos.metadata["tasks"].items()}}
+    path = tmp_path_factory.mktemp("standard") / "standard.npz"
+    dataclasses.replace(demos, metadata=md).save(path)
+    return path
+
+
+def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(standard_hopper_demos, tmp_path):
+    from pomil.algos.bc import BCConfig
+
+    paper = str(ROOT / "data" / "hopper-paper.npz")
+    for demos in (str(ROOT / "data" / "circles.npz"), paper, str(tmp_path / "missing.npz")):
+        cfg = from_dict(AdversarialConfig, {"demos": demos})
+        assert cfg == dataclasses.replace(AdversarialConfig(demos=demos), preset="default")
+        assert from_dict(BCConfig, {"demos": demos}) == dataclasses.replace(BCConfig(demos=demos), preset="default")
+    std = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos)})
+    assert std.preset == "terminating"
+    assert (std.policy_obs_delta, std.policy_prev_action) == (True, False)
+    assert (std.bc_init_iterations, std.bc_init_lr, std.bc_init_lr_decay, std.bc_init_log_std_lr_scale,
+            std.bc_init_fit_log_std) == (600, 3e-3, True, 10.0, True)
+    assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True) == \
+        from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "fast-warm-start"})
+    # the user's values win, also one equal to the field's default; a named preset is taken as named
+    mine = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "policy_prev_action": True,
+                                         "bc_init_iterations": 100})
+    assert (mine.preset, mine.policy_obs_delta, mine.policy_prev_action, mine.bc_init_iterations) == (
+        "terminating", True, True, 100)
+    assert from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"}).bc_init_iterations \
+        == 3000
+    # the run's env_kwargs decide, as they decide the environment: paper's demonstrations made to end on a fall
+    ended = from_dict(AdversarialConfig, {"demos": paper, "env_kwargs": ["terminate_when_unhealthy=true"]})
+    assert ended.preset == "terminating"
+    kept = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos),
+                                         "env_kwargs": ["terminate_when_unhealthy=false"]})
+    assert kept.preset == "default"
+    bc = from_dict(BCConfig, {"demos": str(standard_hopper_demos)})
+    assert (bc.preset, bc.obs_delta, bc.prev_action, bc.iterations) == ("terminating", True, False, 500)
+    # built in Python: resolved when it trains, the preset's values for the fields left at their defaults
+    py = resolved(AdversarialConfig(demos=str(standard_hopper_demos), bc_init_iterations=100))
+    assert (py.preset, py.policy_obs_delta, py.bc_init_iterations, py.bc_init_lr) == ("terminating", True, 100, 3e-3)
+    assert resolved(std) is std
+
+
+def test_train_on_terminating_demonstrations_records_the_preset_it_ran(standard_hopper_demos, tmp_path):
+    tiny = ["--iterations", "1", "--num-envs", "2", "--hidden-size", "8", "--bc-init-iterations", "1",
+            "--posterior-init-iterations", "1", "--critic-batch", "2", "--bc-init-batch", "2", "--eval-every", "0",
+            "--critic-steps", "1", "--no-progress"]
+    assert main(["train", "infogail-pomdp", "--demos", str(standard_hopper_demos), "--out", str(tmp_path / "igp"),
+                 *tiny]) == 0
+    written = json.loads((tmp_path / "igp" / "config.json").read_text())
+    assert (written["preset"], written["policy_obs_delta"], written["policy_prev_action"]) == ("terminating", True,
+                                                                                               False)
+    assert (written["bc_init_iterations"], written["bc_init_lr"]) == (1, 3e-3)  # the flag over the preset
+    assert main(["train", "bc", "--demos", str(standard_hopper_demos), "--out", str(tmp_path / "bc"),
+                 "--iterations", "1", "--hidden-size", "8", "--no-progress"]) == 0
+    written = json.loads((tmp_path / "bc" / "config.json").read_text())
+    assert (written["preset"], written["obs_delta"], written["prev_action"]) == ("terminating", True, False)
+    # a resume with the same flags resolves the same preset: it continues the run
+    assert main(["train", "bc", "--demos", str(standard_hopper_demos), "--out", str(tmp_path / "bc"),
+                 "--iterations", "2", "--hidden-size", "8", "--no-progress", "--resume"]) == 0
 
 
 def test_circle_through_origin_and_every_modes_case_is_a_valid_set():

@@ -216,10 +216,14 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
             f"{source}: unknown key(s) {unknown}; valid keys are: {', '.join(names)}"
         )
     presets: dict[str, dict[str, Any]] = getattr(cls, "PRESETS", {})
-    if presets and values.get("preset") is not None:
-        if values["preset"] not in presets:
-            raise ConfigError(f"config key 'preset': expected one of {list(presets)}, got {values['preset']!r}")
-        values = {**presets[values["preset"]], **values}
+    if presets:
+        name = values.get("preset", _default_of(cls, "preset"))
+        if name == AUTO:
+            name = cls.auto_preset(values)  # type: ignore[attr-defined]
+            values = {**values, "preset": name}  # the run records the preset it ran
+        if name is not None and (not isinstance(name, str) or name not in presets):
+            raise ConfigError(f"config key 'preset': expected one of {[AUTO, *presets]}, got {name!r}")
+        values = {**(presets[name] if name is not None else {}), **values}
     hints = _resolved_types(cls)
     named = {f.name: field_names(f) for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     where = "" if source == "config" else f"{source}: "
@@ -232,6 +236,25 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
         raise ConfigError(f"{where}{err}") from None
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{source}: {err}") from None
+
+
+AUTO = "auto"
+"""The ``preset`` that stands for another, chosen from the demonstrations (:meth:`RunConfig.auto_preset`)."""
+
+
+def _default_of(cls: type, name: str) -> Any:
+    """The default of field ``name`` of config class ``cls`` (None when it has no such field)."""
+    return next((f.default for f in dataclasses.fields(cls) if f.name == name), None)  # type: ignore[arg-type]
+
+
+def resolved(config: T) -> T:
+    """``config`` with ``preset`` auto replaced by the preset it stands for, for a config built in Python
+    rather than by :func:`from_dict`: the preset's values go to the fields left at their defaults."""
+    if getattr(config, "preset", None) != AUTO:
+        return config
+    explicit = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)  # type: ignore[arg-type]
+                if getattr(config, f.name) != f.default}
+    return from_dict(type(config), json.loads(json.dumps(explicit)), source=type(config).__name__)
 
 
 def _renamed(cls: type, values: dict[str, Any], source: str, note: bool = True) -> dict[str, Any]:
@@ -259,6 +282,8 @@ def saved_config(cls: type, saved: dict[str, Any]) -> dict[str, Any]:
     what that version computed)."""
     values = _renamed(cls, saved, "checkpoint", note=False)
     defaults = {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+    if defaults.get("preset") == AUTO:
+        defaults["preset"] = "default"  # a version without presets ran no preset's values (auto resolves to one)
     return {**values, **json.loads(json.dumps({k: v for k, v in defaults.items() if k not in values}))}
 
 
@@ -338,6 +363,26 @@ class RunConfig:
                                    within="[1, inf)")
     device: str = option("cpu", "cpu, cuda, cuda:N or auto")
     progress: bool = option(True, "show a progress bar")
+
+    TERMINATING: typing.ClassVar[str] = "terminating"
+    """The preset that ``preset`` auto stands for when the demonstrations' environment ends episodes on failure."""
+
+    @classmethod
+    def auto_preset(cls, values: dict[str, Any]) -> str:
+        """The preset ``auto`` stands for, given a config's ``values``: ``terminating`` when the demonstrations
+        they name come from an environment (with the values' env_kwargs) that ends an episode when the agent
+        fails, such as Hopper's own setting; ``default`` otherwise (the circles, the paper's Hopper), and
+        when the demonstrations cannot be read (the run reports that when it loads them)."""
+        from pomil.data import load_training_demos
+        from pomil.envs import ends_on_failure
+
+        try:
+            _, env_id, env_kwargs = load_training_demos(str(values.get("demos") or ""),
+                                                        parse_kwargs(values.get("env_kwargs") or ()))
+            ends = ends_on_failure(env_id, env_kwargs)
+        except Exception:  # noqa: BLE001 -- no file, a bad file or an unknown environment: the run says which
+            return "default"
+        return cls.TERMINATING if ends and cls.TERMINATING in getattr(cls, "PRESETS", {}) else "default"
 
     def __post_init__(self) -> None:
         check_fields(self)

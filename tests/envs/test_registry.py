@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from pomil.envs import (
-    FAMILIES, default_num_codes, env_dims, env_family, evaluation_kind, executed_actions_fn, make_vec_env, state_dim,
+    FAMILIES, default_num_codes, ends_on_failure, env_dims, env_family, evaluation_kind, executed_actions_fn,
+    make_vec_env, state_dim,
 )
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import CirclesVecEnv
@@ -45,6 +46,17 @@ def test_families_declare_evaluation_actions_and_codes():
     clamp = executed_actions_fn(HOPPER_ID, {})
     assert clamp(torch.tensor([[2.0, -3.0, 0.5]])).tolist() == [[1.0, -1.0, 0.5]]
     assert executed_actions_fn("Pendulum-v1", {})(torch.tensor([[5.0]])).tolist() == [[5.0]]  # not MuJoCo: as given
+
+
+def test_families_say_whether_episodes_end_on_failure():
+    from pomil.envs.locomotion import HOPPER_SPEED_ID, SETTINGS
+
+    assert not ends_on_failure(CIRCLES_ID, {})
+    assert ends_on_failure(HOPPER_ID, {})  # gymnasium's default: terminate_when_unhealthy
+    assert ends_on_failure(HOPPER_ID, SETTINGS["standard"]) and not ends_on_failure(HOPPER_ID, SETTINGS["paper"])
+    assert ends_on_failure(HOPPER_SPEED_ID, {}) and not ends_on_failure(HOPPER_SPEED_ID, SETTINGS["paper"])
+    assert ends_on_failure("Walker2d-v5", {}) and not ends_on_failure("HalfCheetah-v5", {})  # no such keyword
+    assert not ends_on_failure("Pendulum-v1", {})
 
 
 def test_no_environment_id_appears_outside_envs():

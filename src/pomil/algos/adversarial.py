@@ -50,7 +50,7 @@ from pomil.algos.bc import (EpisodeCodes, MixtureAssignment, bc_step, demo_batch
                             episodes_within, first_step_starts, fit_log_std, most_likely_codes)
 from pomil.algos.num_codes import NumCodesChoice, search_num_codes
 from pomil.api import TrainedPolicy
-from pomil.config import RunConfig, option, parse_kwargs
+from pomil.config import RunConfig, option, parse_kwargs, resolved
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.nn.encoders import OBS_DELTA_HELP, PREV_ACTION_HELP, fit_input_scale
 from pomil.envs import SIM_HELP, default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
@@ -93,15 +93,25 @@ LEARNER_KINDS = {  # what each learner is made of (recurrent: belief encoders of
 #   updates took the warm-started Hopper gaits apart within 5-10 iterations;
 # - 256 episodes per iteration, 30 iterations: the batched simulator and the networks
 #   run ~2x faster per env step than with 64.
+FAST_WARM_START: dict[str, Any] = {
+    "bc_init_iterations": 600, "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_log_std_lr_scale": 10.0,
+    "bc_init_fit_log_std": True,
+}
+"""The fast warm start's settings (presets fast-warm-start and terminating)."""
+
+
 @dataclass(frozen=True)
 class AdversarialConfig(RunConfig):
     learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp",
                                                                     "which learner (set by the subcommand)")
     out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    preset: Literal["default", "paper-text", "fast-warm-start"] = option(
-        "default", "named settings under the config file and flags: default (pomil's measured recipe), paper-text (the "
-                   "paper's text) or fast-warm-start (the warm start in a fifth of the time; worse on Hopper); see "
-                   "PRESETS")
+    preset: Literal["auto", "default", "paper-text", "fast-warm-start", "terminating"] = option(
+        "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
+                "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
+                "otherwise), default (pomil's measured recipe), paper-text (the paper's text), fast-warm-start (the "
+                "warm start in a fifth of the time; worse on the paper's Hopper) or terminating (the policy sees "
+                "(z_t, dz_t) without a_{t-1}, and the fast warm start); config.json records the one that ran; see "
+                "PRESETS")
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
                              within="[0, inf)")
     num_envs: int = option(256, "episodes collected per iteration (at most max_iteration_steps of them)",
@@ -252,10 +262,10 @@ class AdversarialConfig(RunConfig):
         },
         # The warm start in a fifth of the time with the same fit on the demonstrations (NLL), but a worse
         # closed-loop gait on the paper's Hopper (forward 0.82 against 0.96-1.01, 3 seeds): see docs/speed.md.
-        "fast-warm-start": {
-            "bc_init_iterations": 600, "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_log_std_lr_scale": 10.0,
-            "bc_init_fit_log_std": True,
-        },
+        "fast-warm-start": FAST_WARM_START,
+        # Episodes that end when the agent fails (standard Hopper): a clone that sees a_{t-1} copies it and falls
+        # within 22 steps; the velocity dz_t and the fast warm start kept it up (docs/hopper.md, "Standard setting").
+        "terminating": {"policy_obs_delta": True, "policy_prev_action": False, **FAST_WARM_START},
     }
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
 
@@ -754,7 +764,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     """Train (or continue) an adversarial run; returns the checkpoint path."""
     if not cfg.demos:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
-    cfg = sized_for_episodes(cfg, Demonstrations.load(cfg.demos).episode_lengths.max(initial=0))
+    cfg = sized_for_episodes(resolved(cfg), Demonstrations.load(cfg.demos).episode_lengths.max(initial=0))
     with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
         demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
         choice = None

@@ -13,13 +13,13 @@ import math
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Any, Callable, ClassVar, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pomil.config import RunConfig, option, parse_kwargs
+from pomil.config import RunConfig, option, parse_kwargs, resolved
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.envs.wrappers import parse_mask
@@ -33,6 +33,11 @@ from pomil.training import RunLoop, lr_hint
 @dataclass(frozen=True)
 class BCConfig(RunConfig):
     out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
+    preset: Literal["auto", "default", "terminating"] = option(
+        "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
+                "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
+                "otherwise), default, or terminating (the policy sees (z_t, dz_t) without a_{t-1}); config.json "
+                "records the one that ran; see PRESETS")
     policy: Literal["mlp", "gru", "lstm", "attention"] = option(
         "gru", "mlp: current observation only; gru, lstm or attention (a one-layer causal transformer over the last "
                "attention_context steps): belief over the history")
@@ -48,6 +53,14 @@ class BCConfig(RunConfig):
                                          "Hopper: 16)", within="[1, inf)")
     lr: float = option(1e-3, "Adam learning rate", within="(0, inf)")
     log_std_init: float = option(-1.0, "initial log standard deviation of the Gaussian policy", within="(-inf, inf)")
+
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        # Episodes that end when the agent fails (standard Hopper): with a_{t-1} the clone copies it and falls within
+        # 22 steps; (z_t, dz_t) alone stayed up 377-455 steps (docs/hopper.md, "What makes the clone fall").
+        "terminating": {"obs_delta": True, "prev_action": False},
+    }
+    """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -317,7 +330,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     if not config.demos:
         raise PomilError("bc: --demos is required (a demonstrations .npz file)")
     hints = {"bc": lr_hint(config, "lr"), "policy": lr_hint(config, "lr")}
-    config = sized_for_episodes(config, Demonstrations.load(config.demos).episode_lengths.max(initial=0))
+    config = sized_for_episodes(resolved(config), Demonstrations.load(config.demos).episode_lengths.max(initial=0))
     with RunLoop(config, algo="bc", resume=resume, hints=hints) as loop:
         demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs),
                                                         parse_mask(config.observation_mask))

@@ -26,6 +26,7 @@ import torch
 
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.locomotion import HOPPER_ID, HOPPER_SPEED_ID
+from pomil.envs.locomotion import ends_on_failure as _gym_ends_on_failure
 
 if CIRCLES_ID not in gym.registry:
     gym.register(id=CIRCLES_ID, entry_point="pomil.envs.circles:CirclesEnv")
@@ -43,7 +44,8 @@ class EnvFamily:
     ``dims(env_id, kwargs)`` -> (obs_dim, act_dim) unmasked; ``state_dim(env_id, kwargs)``
     -> columns of the demonstrations' ``states``; ``executed_actions(env_id, kwargs)`` ->
     raw policy actions to the actions carried out; ``default_num_codes(metadata)`` ->
-    the number of codes the demonstrations (their metadata) suggest, or None."""
+    the number of codes the demonstrations (their metadata) suggest, or None;
+    ``ends_on_failure(env_id, kwargs)`` -> whether an episode ends when the agent fails."""
 
     name: str
     claims: Callable[[str], bool]
@@ -53,6 +55,7 @@ class EnvFamily:
     executed_actions: Callable[[str, dict[str, Any]], Executor]
     evaluation: Literal["circles", "tasks"]
     default_num_codes: Callable[[dict[str, Any]], int | None] = lambda metadata: None
+    ends_on_failure: Callable[[str, dict[str, Any]], bool] = lambda env_id, kwargs: False
 
 
 # ------------------------------------------------------------------- circles
@@ -133,9 +136,9 @@ FAMILIES: tuple[EnvFamily, ...] = (
               state_dim=lambda env_id, kwargs: 2,  # the positions
               executed_actions=_circles_executed, evaluation="circles", default_num_codes=_circles_codes),
     EnvFamily("hopper", lambda env_id: env_id in (HOPPER_ID, HOPPER_SPEED_ID), _hopper_make, _gym_dims,
-              _full_observation, _gym_executed, evaluation="tasks"),
+              _full_observation, _gym_executed, evaluation="tasks", ends_on_failure=_gym_ends_on_failure),
     EnvFamily("gymnasium", lambda env_id: True, _gym_make, _gym_dims, _full_observation, _gym_executed,
-              evaluation="tasks"),
+              evaluation="tasks", ends_on_failure=_gym_ends_on_failure),
 )
 """Every family; the first that claims an id runs it (the last claims every id)."""
 
@@ -217,3 +220,9 @@ def evaluation_kind(env_id: str, metadata: dict[str, Any]) -> Literal["circles",
 def default_num_codes(metadata: dict[str, Any]) -> int | None:
     """The number of latent codes the demonstrations' environment suggests (circles: one per circle)."""
     return env_family(str(metadata.get("env_id", ""))).default_num_codes(metadata)
+
+
+def ends_on_failure(env_id: str, env_kwargs: dict[str, Any]) -> bool:
+    """Whether ``env_id`` with keywords ``env_kwargs`` ends an episode when the agent fails
+    (standard Hopper falls); the circles and the paper's Hopper setting never do."""
+    return env_family(env_id).ends_on_failure(env_id, env_kwargs)

@@ -117,25 +117,11 @@ def locomotion_kwargs(env_id: str, task: str, setting: str) -> dict[str, Any]:
     if env_id == HOPPER_SPEED_ID and task != "none":
         raise ValueError(f"{env_id} has its own reward (a target speed): use task 'none' and "
                          "--env-kwargs target_velocity=V")
-    import inspect
-
-    import gymnasium as gym
-
     if setting not in SETTINGS:
         raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(SETTINGS)}")
     if task not in (*TASKS, "none"):
         raise ValueError(f"unknown task {task!r}; expected one of {[*TASKS, 'none']}")
-    entry = gym.spec(env_id).entry_point
-    if isinstance(entry, str):
-        module, _, name = entry.partition(":")
-        entry = getattr(__import__(module, fromlist=[name]), name)
-    # keywords of the constructor and, where it passes **kwargs on, of its base classes' (HopperSpeedEnv)
-    accepted: set[str] = set()
-    for cls in getattr(entry, "__mro__", (entry,)):
-        params = inspect.signature(cls).parameters
-        accepted |= set(params)
-        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-            break
+    accepted = constructor_keywords(env_id)
     kw: dict[str, Any] = {}
     if task != "none":
         if "forward_reward_weight" not in accepted:
@@ -147,6 +133,37 @@ def locomotion_kwargs(env_id: str, task: str, setting: str) -> dict[str, Any]:
         if "terminate_when_unhealthy" in accepted:
             kw["terminate_when_unhealthy"] = False
     return kw
+
+
+def constructor_keywords(env_id: str) -> dict[str, Any]:
+    """The keywords a registered environment's constructor takes, with their defaults
+    (``inspect.Parameter.empty`` where it has none): its own and, where it passes ``**kwargs``
+    on, those of its base classes (:class:`HopperSpeedEnv` -> Hopper-v5's)."""
+    import inspect
+
+    import gymnasium as gym
+
+    entry = gym.spec(env_id).entry_point
+    if isinstance(entry, str):
+        module, _, name = entry.partition(":")
+        entry = getattr(__import__(module, fromlist=[name]), name)
+    accepted: dict[str, Any] = {}
+    for cls in getattr(entry, "__mro__", (entry,)):
+        params = inspect.signature(cls).parameters
+        for name, p in params.items():
+            if p.kind not in (inspect.Parameter.VAR_KEYWORD, inspect.Parameter.VAR_POSITIONAL):
+                accepted.setdefault(name, p.default)
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            break
+    return accepted
+
+
+def ends_on_failure(env_id: str, env_kwargs: dict[str, Any]) -> bool:
+    """Whether a MuJoCo locomotion environment with keywords ``env_kwargs`` ends an episode when
+    the agent fails (Hopper, Walker2d, Ant, Humanoid: ``terminate_when_unhealthy``, default true
+    in gymnasium); false for environments without that keyword (HalfCheetah, Swimmer)."""
+    default = constructor_keywords(env_id).get("terminate_when_unhealthy", False)
+    return bool(env_kwargs.get("terminate_when_unhealthy", default))
 
 
 def _model_path() -> str:
