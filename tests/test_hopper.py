@@ -115,3 +115,21 @@ def test_standard_setting_records_from_the_shipped_standard_experts(tmp_path):
     assert "DART" not in Demonstrations.load(clean).metadata["merged_from"][0]["source"]
     with pytest.raises(ValueError, match="demo_action_noise"):
         HopperReproConfig(setting="standard", demo_action_noise=-0.5)
+
+
+def test_cli_demos_hopper_records_with_the_settings_action_noise(tmp_path, capsys):
+    std = ["--forward-expert", "data/experts/hopper-standard-forward.pt",
+           "--backward-expert", "data/experts/hopper-standard-backward.pt", "--episodes", "1"]
+    cases = {"paper": ([], "no"), "standard": (std, "0.1"), "standard-clean": ([*std, "--action-noise", "0"], "no")}
+    for name, (extra, noise) in cases.items():
+        out = tmp_path / f"{name}.npz"
+        assert main(["demos", "hopper", "--setting", name.split("-")[0], "--out", str(out), *extra]) == 0
+        sources = [m["source"] for m in Demonstrations.load(out).metadata["merged_from"]]
+        assert all(("DART" in src) == (noise != "no") for src in sources), sources
+        if noise != "no":
+            assert all(f"N(0, {noise}^2) action noise (DART)" in src for src in sources)
+    capsys.readouterr()
+    assert main(["demos", "hopper", "--setting", "standard", "--out", str(tmp_path / "bad.npz"), *std,
+                 "--action-noise", "-0.5"]) == 2
+    assert "--action-noise must be -1 (the setting's) or >= 0, got -0.5" in capsys.readouterr().err
+    assert not (tmp_path / "bad.npz").exists()

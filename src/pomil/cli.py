@@ -119,9 +119,9 @@ class HopperDemosConfig:
     observation_mask: str = option("positions-only",
                                    "what the learner observes: positions-only, or comma-separated indices")
     seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
-    action_noise: float = option(0.0, "std of Gaussian noise added to the executed actions while the expert's own "
-                                      "actions are recorded (DART: demonstrations with recoveries); 0: none",
-                                 within="[0, inf)")
+    action_noise: float = option(-1.0, "std of Gaussian noise added to the executed actions while the expert's own "
+                                       "actions are recorded (DART: demonstrations with recoveries); 0: none; -1: the "
+                                       "setting's, paper 0, standard 0.1", within="[-1, inf)")
 
 
 def _mask_arg(text: str) -> str | list[int] | None:
@@ -219,6 +219,7 @@ def cmd_demos_minari(args: argparse.Namespace) -> int:
 
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
     from pomil.demos import record_hopper_demos
+    from pomil.envs.locomotion import DEMO_ACTION_NOISE
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
     experts = {"forward": cfg.forward_expert, "backward": cfg.backward_expert}
@@ -226,9 +227,12 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
         if not Path(path).is_file():
             raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
                              f"{task})")
+    if cfg.action_noise < 0 and cfg.action_noise != -1:
+        raise PomilError(f"demos hopper: --action-noise must be -1 (the setting's) or >= 0, got {cfg.action_noise:g}")
+    noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.action_noise == -1 else cfg.action_noise
     try:
         demos = record_hopper_demos(experts, cfg.episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask),
-                                    action_noise=cfg.action_noise)
+                                    action_noise=noise)
     except ValueError as err:
         raise PomilError(f"demos hopper: {err}") from None
     demos.save(cfg.out)

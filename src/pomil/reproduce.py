@@ -40,6 +40,7 @@ from pomil.data import Demonstrations, atomic_write
 from pomil.envs import env_family
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
+from pomil.envs.locomotion import DEMO_ACTION_NOISE
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
 from pomil.eval.plots import figure1
@@ -522,11 +523,6 @@ def tasks_success(m: dict[str, Any]) -> bool:
     return all(t[k] >= v for t in m["tasks"].values() for k, v in TASKS_SUCCESS.items())
 
 
-DEMO_ACTION_NOISE = {"paper": 0.0, "standard": 0.1}
-"""Per setting, the DART action noise with which missing demonstrations are recorded: the standard setting's
-episodes end when the hopper falls, and demonstrations with recoveries keep its clones up (docs/hopper.md);
-0.1 is the largest noise measured that leaves the experts' returns as they were."""
-
 
 @dataclass(frozen=True)
 class HopperReproConfig(LearnerRuns):
@@ -576,7 +572,7 @@ def hopper_demos(cfg: HopperReproConfig) -> Path:
     if missing:
         raise PomilError(f"{path} is missing and so are the experts to record it from ({', '.join(missing)}); "
                          f"train them with `pomil experts hopper --task forward|backward --setting {cfg.setting}`")
-    noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.demo_action_noise == -1 else cfg.demo_action_noise
+    noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.demo_action_noise == -1 else cfg.demo_action_noise  # the setting's
     demos = record_hopper_demos(experts, cfg.demo_episodes, cfg.setting, action_noise=noise)
     demos.save(path)
     dart = f" (DART action noise {noise:g})" if noise else ""

@@ -48,6 +48,11 @@ SETTINGS = {
     "paper": {"terminate_when_unhealthy": False, "max_episode_steps": 128},
     "standard": {"terminate_when_unhealthy": True, "max_episode_steps": 1000},
 }
+DEMO_ACTION_NOISE = {"paper": 0.0, "standard": 0.1}
+"""Per setting, the DART action noise (``pomil demos hopper --action-noise``) its demonstrations are recorded with
+by default: the standard setting's episodes end when the hopper falls, and demonstrations that show recoveries
+keep its clones up (docs/hopper.md); 0.1 is the largest noise measured that leaves the experts' returns as they
+were."""
 FRAME_SKIP = 4
 # Hopper-v5's constructor defaults (gymnasium 1.x), plus the time limit of its registration.
 HOPPER_DEFAULTS: dict[str, Any] = {
