@@ -133,3 +133,40 @@ def test_cli_demos_hopper_records_with_the_settings_action_noise(tmp_path, capsy
                  "--action-noise", "-0.5"]) == 2
     assert "--action-noise must be -1 (the setting's) or >= 0, got -0.5" in capsys.readouterr().err
     assert not (tmp_path / "bad.npz").exists()
+
+
+def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path):
+    """`--first-seed` runs later seeds; `pomil reproduce merge` joins them with the earlier ones into one
+    table of all seeds (runs in seed order, policies, summaries recomputed), and refuses other settings."""
+    import json
+
+    import numpy as np
+
+    def run(first: int, out: str, iterations: str = "2") -> None:
+        assert main(["reproduce", "hopper", "--seeds", "1", "--first-seed", str(first), "--learners", "bc-mlp",
+                     "--bc-iterations", iterations, "--episodes-per-code", "2", "--demos", str(DEMOS),
+                     "--out", str(tmp_path / out), "--runs", str(tmp_path / "runs" / out), "--no-progress"]) == 0
+
+    run(0, "a")
+    run(1, "b")
+    b = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert [r["train_seed"] for r in b["learners"]["bc-mlp"]["runs"]] == [1]
+    assert (tmp_path / "b" / "policies" / "bc-mlp-seed1.pt").exists()
+    assert b["bc_settings"]["iterations"] == 2
+    assert main(["reproduce", "merge", str(tmp_path / "b"), str(tmp_path / "a"), "--out", str(tmp_path / "ab")]) == 0
+    ab = json.loads((tmp_path / "ab" / "metrics.json").read_text())
+    a = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    runs = ab["learners"]["bc-mlp"]["runs"]
+    assert ab["seeds"] == 2 and [r["train_seed"] for r in runs] == [0, 1]
+    assert runs[0] == a["learners"]["bc-mlp"]["runs"][0] and runs[1] == b["learners"]["bc-mlp"]["runs"][0]
+    values = [r["tasks"]["forward"]["progress"] for r in runs]
+    assert ab["learners"]["bc-mlp"]["summary"]["forward"]["progress"] == [float(np.mean(values)),
+                                                                         float(np.std(values))]
+    assert sorted(p.name for p in (tmp_path / "ab" / "policies").iterdir()) == ["bc-mlp-seed0.pt", "bc-mlp-seed1.pt"]
+    assert "mean ± std over 2 seed(s)" in (tmp_path / "ab" / "table.md").read_text()
+    assert (tmp_path / "ab" / "figure.png").exists()
+    # a seed twice, or other settings: one line, nothing written
+    assert main(["reproduce", "merge", str(tmp_path / "ab"), str(tmp_path / "a"), "--out", str(tmp_path / "x")]) == 2
+    run(2, "c", iterations="3")
+    assert main(["reproduce", "merge", str(tmp_path / "a"), str(tmp_path / "c"), "--out", str(tmp_path / "y")]) == 2
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

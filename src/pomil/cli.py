@@ -426,6 +426,11 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         reproduce_circles_continuous, reproduce_circles_modes, reproduce_hopper,
     )
 
+    if args.experiment == "merge":
+        from pomil.reproduce import merge_task_results
+
+        merge_task_results([Path(r) for r in args.results], Path(args.out))
+        return 0
     if args.experiment == "tasks":
         cfg = config_from_args(HopperReproConfig, args)
         if not cfg.demos or not Path(cfg.demos).is_file():
@@ -580,6 +585,12 @@ def build_parser() -> argparse.ArgumentParser:
                                 "HalfCheetah)")
     add_config_flags(rt, HopperReproConfig)
     rt.set_defaults(func=cmd_reproduce)
+    rj = rp_sub.add_parser("merge", help="join Hopper/tasks reproductions of the same settings run on other seeds "
+                                         "(--first-seed): runs, policies, table and curves over all their seeds")
+    rj.add_argument("results", nargs="+", help="results directories (each with metrics.json and policies/)")
+    rj.add_argument("--out", required=True, help="where the merged metrics.json, table.md, figure.png and policies/ "
+                                                 "go (may be the first results directory)")
+    rj.set_defaults(func=cmd_reproduce)
     return p
 
 

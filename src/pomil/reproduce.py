@@ -25,6 +25,7 @@ figure.png (Figure-2c-style curves over env steps) and policies/.
 from __future__ import annotations
 
 import dataclasses
+import json
 import platform
 import sys
 import time
@@ -76,6 +77,12 @@ class LearnerRuns(RayOptions):
                                       "one (a finished run is only evaluated again); its settings must not change")
 
 
+def seed_list(cfg: Any) -> list[int]:
+    """The training seeds of a reproduction: ``first_seed`` (0 where a config has none) and the ``seeds`` after it."""
+    first = getattr(cfg, "first_seed", 0)
+    return list(range(first, first + cfg.seeds))
+
+
 @dataclass(frozen=True)
 class CirclesReproConfig(LearnerRuns):
     out: str = option("runs/results/circles", "results directory (metrics.json, table.md, figure.png); the committed "
@@ -107,17 +114,21 @@ def check_runs(cfg: Any) -> None:
 # adversarial_iterations, adversarial_config, progress).
 def train_learner(cfg: Any, name: str, seed: int, run_dir: Path) -> Path:
     """Train learner ``name`` (:data:`pomil.learners.LEARNERS`) for one seed of a reproduction."""
-    from pomil.config import load_config_file
-
     learner = LEARNERS[name]
     resume = cfg.resume_runs and (run_dir / "checkpoint.pt").exists()
     if name in ADVERSARIAL:
         return learner.train(adversarial_config(cfg, name, seed, run_dir), resume=resume)
+    return learner.train(bc_config(cfg, name, seed, run_dir), resume=resume)
+
+
+def bc_config(cfg: Any, learner: str, seed: int, run_dir: Path):
+    """The defaults, then the user's --bc-config file and --bc-iterations, then this run's own fields."""
+    from pomil.config import load_config_file
+
     values = load_config_file(cfg.bc_config) if cfg.bc_config else {}
     values.update({"iterations": cfg.bc_iterations} if cfg.bc_iterations else {})
     values.update(demos=cfg.demos_file, out=str(run_dir), seed=seed, progress=cfg.progress)
-    return learner.train(learner.make_config(values, source=cfg.bc_config or "the reproduction's settings"),
-                         resume=resume)
+    return LEARNERS[learner].make_config(values, source=cfg.bc_config or "the reproduction's settings")
 
 
 def adversarial_config(cfg: Any, learner: str, seed: int, run_dir: Path, demos: str | None = None, **own: Any):
@@ -254,7 +265,7 @@ def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable,
             if getattr(cfg, k, ""):
                 absolute[k] = str(Path(getattr(cfg, k)).resolve())
         cfg = dataclasses.replace(cfg, progress=False, **absolute)
-    keys = [(name, seed) for name in (names or cfg.learners) for seed in range(cfg.seeds)]
+    keys = [(name, seed) for name in (names or cfg.learners) for seed in seed_list(cfg)]
     results = run_jobs(job, [(cfg, name, seed) for name, seed in keys], [f"[{n}] seed {s}" for n, s in keys],
                        ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report)
     return {key: r.value for key, r in zip(keys, results)}
@@ -536,7 +547,9 @@ class HopperReproConfig(LearnerRuns):
     demo_action_noise: float = option(-1.0, "DART action noise when the demonstrations are recorded (pomil demos "
                                             "hopper --action-noise); -1: the setting's, paper 0, standard 0.1",
                                       within="[-1, inf)")
-    seeds: int = option(5, "training seeds per learner (0 .. seeds-1)", within="[1, inf)")
+    seeds: int = option(5, "training seeds per learner (first_seed .. first_seed+seeds-1)", within="[1, inf)")
+    first_seed: int = option(0, "the first training seed: runs seeds first_seed .. first_seed+seeds-1 (to add seeds "
+                                "to a reproduction; `pomil reproduce merge` joins the results)", within="[0, inf)")
     episodes_per_code: int = option(50, "final evaluation episodes per latent code and task (deterministic policy)",
                                     within="[1, inf)")
     progress: bool = option(True, "show progress bars")
@@ -659,7 +672,6 @@ def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
 def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     """The Hopper protocol; on any multi-task demonstrations (``pomil reproduce tasks``) when ``demos`` names them."""
     from pomil.eval.tasks import reference_of
-    from pomil.eval.plots import learning_curves
 
     t_start = time.perf_counter()
     demos_path = hopper_demos(cfg)
@@ -677,6 +689,8 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
         "adversarial_settings": {
             k: v for k, v in to_dict(adversarial_config(cfg, "infogail-pomdp", 0, Path("."))).items()
             if k not in ("learner", "out", "seed", "progress")},
+        "bc_settings": {k: v for k, v in to_dict(bc_config(cfg, "bc-gru", 0, Path("."))).items()
+                        if k not in ("policy", "out", "seed", "progress")},
         "machine": {"python": sys.version.split()[0], "platform": platform.platform()},
         "learners": {},
     }
@@ -691,18 +705,118 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
 
     done = _run_all(cfg, _tasks_job, report)
     for name in cfg.learners:
-        runs = [done[name, seed]["metrics"] for seed in range(cfg.seeds)]
-        for seed, r in enumerate(runs):
+        runs = [done[name, seed]["metrics"] for seed in seed_list(cfg)]
+        for seed, r in zip(seed_list(cfg), runs):
             TrainedPolicy.load(r["checkpoint"]).save(out / "policies" / f"{name}-seed{seed}.pt")
-        results["learners"][name] = {"runs": runs, "summary": task_summary(runs, tasks),
-                                     "successes": int(sum(tasks_success(r) for r in runs)),
-                                     "wall_s": [done[name, seed]["wall_s"] for seed in range(cfg.seeds)],
-                                     "curves": [done[name, seed]["curve"] for seed in range(cfg.seeds)]}
+        results["learners"][name] = {"runs": runs,
+                                     "wall_s": [done[name, seed]["wall_s"] for seed in seed_list(cfg)],
+                                     "curves": [done[name, seed]["curve"] for seed in seed_list(cfg)]}
     results["wall_time_s"] = time.perf_counter() - t_start
+    write_task_results(out, results)
+    return results
+
+
+def write_task_results(out: Path, results: dict[str, Any]) -> None:
+    """metrics.json, table.md and figure.png of a Hopper/tasks reproduction in ``out``, each learner's
+    summary and success count computed from its runs."""
+    from pomil.eval.plots import learning_curves
+
+    for r in results["learners"].values():
+        r["summary"] = task_summary(r["runs"], results["tasks"])
+        r["successes"] = int(sum(tasks_success(run) for run in r["runs"]))
+    results["seeds"] = len(next(iter(results["learners"].values()))["runs"]) if results["learners"] else 0
     write_json(out / "metrics.json", results)
     table = hopper_table(results)
     atomic_write(out / "table.md", lambda f: f.write(table.encode()))
     learning_curves(results, out / "figure.png")
     print(table)
-    print(f"wrote {out}/metrics.json, table.md, figure.png in {results['wall_time_s']:.0f} s")
-    return results
+    print(f"wrote {out}/metrics.json, table.md, figure.png ({results['wall_time_s']:.0f} s of runs)")
+
+
+# Settings that may differ between the reproductions `merge_task_results` joins: where the files
+# were, and the name of a preset whose values the other settings record in full.
+MERGE_FREE = {"config": ("out", "runs", "demos", "seeds", "first_seed", "ray", "ray_address", "progress",
+                         "adversarial_config", "bc_config", "resume_runs"),
+              "adversarial_settings": ("demos", "preset"), "bc_settings": ("demos", "preset")}
+
+
+def merge_task_results(sources: list[Path], out: Path) -> dict[str, Any]:
+    """Join Hopper/tasks reproductions run on other seeds (``--first-seed``) into one, in ``out``:
+    every learner's runs in seed order, its policies, the table and curves over all seeds.
+
+    The reproductions must agree on what they measured: the experiment, the environment, setting,
+    tasks, evaluation episodes, the demonstrations' reference returns, the success criteria, the
+    learners' resolved adversarial settings and BC settings (where both record them) and the
+    iterations; a learner's seeds must not repeat.  Anything else is a one-line error before a file
+    is written."""
+    import shutil
+
+    loaded = []
+    for src in sources:
+        path = Path(src) / "metrics.json"
+        try:
+            loaded.append((Path(src), json.loads(path.read_text())))
+        except (OSError, ValueError) as err:
+            raise PomilError(f"{path}: cannot read a reproduction's metrics ({err})") from None
+    for src, r in loaded:
+        if r.get("experiment") not in ("hopper", "tasks") or "learners" not in r:
+            raise PomilError(f"{src}/metrics.json: not a Hopper/tasks reproduction (experiment "
+                             f"{r.get('experiment')!r}); merge joins those")
+    (first_src, first), rest = loaded[0], loaded[1:]
+
+    def same(key: str, a: Any, b: Any, src: Path) -> None:
+        if a != b:
+            raise PomilError(f"{src}/metrics.json: {key} differs from {first_src}'s ({b!r} against {a!r}); "
+                             "only runs of the same experiment and settings on other seeds can be merged")
+
+    merged = json.loads(json.dumps(first))
+    merged["merged_from"] = [{"results": str(first_src), "config": first["config"]}]
+    for src, r in rest:
+        for key in ("experiment", "env_id", "setting", "tasks", "episodes_per_code", "success_criteria"):
+            same(key, first.get(key), r.get(key), src)
+        for key in ("expert_returns", "still_returns"):  # the same demonstrations: the same reference returns
+            a, b = first["reference"][key], r["reference"][key]
+            if set(a) != set(b) or any(abs(a[t] - b[t]) > 1e-3 * max(1.0, abs(a[t])) for t in a):
+                same(f"reference.{key}", a, b, src)
+        for key in ("adversarial_iterations", "bc_iterations"):
+            same(f"config.{key}", first["config"].get(key), r["config"].get(key), src)
+        for key in ("adversarial_settings", "bc_settings"):
+            if key in first and key in r:
+                drop = MERGE_FREE[key]
+                same(key, {k: v for k, v in first[key].items() if k not in drop},
+                     {k: v for k, v in r[key].items() if k not in drop}, src)
+            elif key in first or key in r:
+                print(f"pomil: note: {src if key in first else first_src}/metrics.json records no {key}: "
+                      "not compared", file=sys.stderr)
+        for name, lr in r["learners"].items():
+            to = merged["learners"].setdefault(name, {"runs": [], "wall_s": [], "curves": []})
+            seeds = {run["train_seed"] for run in to["runs"]}
+            repeated = sorted(seeds & {run["train_seed"] for run in lr["runs"]})
+            if repeated:
+                raise PomilError(f"{src}/metrics.json: {name} seed(s) {repeated} are already in the merge")
+            for k in ("runs", "wall_s", "curves"):
+                to[k] += lr[k]
+        merged["merged_from"].append({"results": str(src), "config": r["config"]})
+        merged["wall_time_s"] = merged.get("wall_time_s", 0.0) + r.get("wall_time_s", 0.0)
+    counts = {name: len(lr["runs"]) for name, lr in merged["learners"].items()}
+    if len(set(counts.values())) > 1:
+        raise PomilError(f"the merged learners have different numbers of seeds ({counts}); merge reproductions "
+                         "of the same learners")
+    policies = []
+    for src, r in loaded:
+        for name, lr in r["learners"].items():
+            for run in lr["runs"]:
+                policy = src / "policies" / f"{name}-seed{run['train_seed']}.pt"
+                if not policy.is_file():
+                    raise PomilError(f"{policy}: missing (every run's policy is merged with it)")
+                policies.append((policy, out / "policies" / policy.name))
+    for lr in merged["learners"].values():
+        order = np.argsort([run["train_seed"] for run in lr["runs"]], kind="stable")
+        for k in ("runs", "wall_s", "curves"):
+            lr[k] = [lr[k][i] for i in order]
+    (out / "policies").mkdir(parents=True, exist_ok=True)
+    for policy, dest in policies:
+        if policy.resolve() != dest.resolve():
+            shutil.copyfile(policy, dest)
+    write_task_results(out, merged)
+    return merged
