@@ -110,12 +110,13 @@ def cmd_demos(args: argparse.Namespace) -> int:
 
 @dataclass(frozen=True)
 class HopperDemosConfig:
-    out: str = option("data/hopper-paper.npz", "output .npz file (written atomically)")
+    out: str = option("", "output .npz file (written atomically); default data/hopper-SETTING.npz")
     episodes: int = option(200, "episodes per task", within="[1, inf)")
     setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; "
                                                             "standard: Hopper's own 1000 steps")
-    forward_expert: str = option("data/experts/hopper-forward.pt", "forward expert checkpoint (pomil experts hopper)")
-    backward_expert: str = option("data/experts/hopper-backward.pt", "backward expert checkpoint")
+    forward_expert: str = option("", "forward expert checkpoint (pomil experts hopper); default the setting's "
+                                     "shipped one, data/experts/hopper[-standard]-forward.pt")
+    backward_expert: str = option("", "backward expert checkpoint; default the setting's shipped one")
     observation_mask: str = option("positions-only",
                                    "what the learner observes: positions-only, or comma-separated indices")
     seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
@@ -219,10 +220,13 @@ def cmd_demos_minari(args: argparse.Namespace) -> int:
 
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
     from pomil.demos import record_hopper_demos
-    from pomil.envs.locomotion import DEMO_ACTION_NOISE
+    from pomil.envs.locomotion import DEMO_ACTION_NOISE, HOPPER_EXPERTS
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
-    experts = {"forward": cfg.forward_expert, "backward": cfg.backward_expert}
+    shipped = HOPPER_EXPERTS[cfg.setting]
+    experts = {"forward": cfg.forward_expert or shipped["forward"],
+               "backward": cfg.backward_expert or shipped["backward"]}
+    out = cfg.out or f"data/hopper-{cfg.setting}.npz"
     for task, path in experts.items():
         if not Path(path).is_file():
             raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
@@ -235,9 +239,9 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
                                     action_noise=noise)
     except ValueError as err:
         raise PomilError(f"demos hopper: {err}") from None
-    demos.save(cfg.out)
+    demos.save(out)
     md = demos.metadata
-    print(f"wrote {cfg.out}: {demos.num_episodes} episodes ({cfg.episodes} per task, {cfg.setting} setting), "
+    print(f"wrote {out}: {demos.num_episodes} episodes ({cfg.episodes} per task, {cfg.setting} setting), "
           f"observation {md['observation_mask']}; expert returns "
           + ", ".join(f"{t} {md['expert_returns'][t]:.1f} (zero actions {md['still_returns'][t]:.1f})"
                       for t in experts))

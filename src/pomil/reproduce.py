@@ -41,7 +41,7 @@ from pomil.data import Demonstrations, atomic_write
 from pomil.envs import env_family
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
-from pomil.envs.locomotion import DEMO_ACTION_NOISE
+from pomil.envs.locomotion import DEMO_ACTION_NOISE, HOPPER_EXPERTS
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
 from pomil.eval.plots import figure1
@@ -520,9 +520,6 @@ def reproduce_circles_continuous(cfg: CirclesContinuousConfig) -> dict[str, Any]
 
 
 # ====================================================================== Hopper
-# Shipped experts per setting: the paper setting's never learned to stay healthy past 128 steps.
-HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper' else '-' + setting}-{task}.pt"
-                            for task in ("forward", "backward")} for setting in ("paper", "standard")}
 METRICS = ("normalised_return", "progress", "displacement_ratio")
 TASKS_SUCCESS = {"normalised_return": 0.7, "progress": 0.7}
 """A seed succeeds when, on every task, the code matched to it reaches these figures (the standard-Hopper target of

@@ -48,6 +48,10 @@ SETTINGS = {
     "paper": {"terminate_when_unhealthy": False, "max_episode_steps": 128},
     "standard": {"terminate_when_unhealthy": True, "max_episode_steps": 1000},
 }
+HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper' else '-' + setting}-{task}.pt"
+                            for task in ("forward", "backward")} for setting in ("paper", "standard")}
+"""Per setting, the shipped Hopper experts (relative to the repository root): the paper setting's never
+learned to stay healthy past 128 steps, so the standard setting has experts of its own."""
 DEMO_ACTION_NOISE = {"paper": 0.0, "standard": 0.1}
 """Per setting, the DART action noise (``pomil demos hopper --action-noise``) its demonstrations are recorded with
 by default: the standard setting's episodes end when the hopper falls, and demonstrations that show recoveries
