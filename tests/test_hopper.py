@@ -173,3 +173,27 @@ def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path):
     run(2, "c", iterations="3")
     assert main(["reproduce", "merge", str(tmp_path / "a"), str(tmp_path / "c"), "--out", str(tmp_path / "y")]) == 2
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_demo_episodes_default_to_the_settings(tmp_path, monkeypatch, capsys):
+    """-1 (the default) records what the committed results were measured on: paper 200, standard 100 per task."""
+    import pomil.demos
+    from pomil.reproduce import HopperReproConfig, hopper_demos
+
+    asked = []
+
+    def record(experts, episodes, setting, *args, **kwargs):
+        asked.append((setting, episodes))
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(pomil.demos, "record_hopper_demos", record)
+    for setting in ("paper", "standard"):
+        with pytest.raises(ValueError, match="stop here"):
+            hopper_demos(HopperReproConfig(setting=setting, demos=str(tmp_path / f"{setting}.npz")))
+        assert main(["demos", "hopper", "--setting", setting, "--out", str(tmp_path / f"c-{setting}.npz")]) == 2
+    assert asked == [("paper", 200), ("paper", 200), ("standard", 100), ("standard", 100)]
+    capsys.readouterr()
+    assert main(["demos", "hopper", "--episodes", "0", "--out", str(tmp_path / "z.npz")]) == 2
+    assert "--episodes must be -1 (the setting's) or >= 1, got 0" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="demo_episodes"):
+        HopperReproConfig(demo_episodes=0)

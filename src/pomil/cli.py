@@ -111,7 +111,7 @@ def cmd_demos(args: argparse.Namespace) -> int:
 @dataclass(frozen=True)
 class HopperDemosConfig:
     out: str = option("", "output .npz file (written atomically); default data/hopper-SETTING.npz")
-    episodes: int = option(200, "episodes per task", within="[1, inf)")
+    episodes: int = option(-1, "episodes per task; -1: the setting's, paper 200, standard 100", within="[-1, inf)")
     setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; "
                                                             "standard: Hopper's own 1000 steps")
     forward_expert: str = option("", "forward expert checkpoint (pomil experts hopper); default the setting's "
@@ -220,9 +220,12 @@ def cmd_demos_minari(args: argparse.Namespace) -> int:
 
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
     from pomil.demos import record_hopper_demos
-    from pomil.envs.locomotion import DEMO_ACTION_NOISE, HOPPER_EXPERTS
+    from pomil.envs.locomotion import DEMO_ACTION_NOISE, DEMO_EPISODES, HOPPER_EXPERTS
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
+    if cfg.episodes == 0:
+        raise PomilError("demos hopper: --episodes must be -1 (the setting's) or >= 1, got 0")
+    episodes = DEMO_EPISODES[cfg.setting] if cfg.episodes == -1 else cfg.episodes
     shipped = HOPPER_EXPERTS[cfg.setting]
     experts = {"forward": cfg.forward_expert or shipped["forward"],
                "backward": cfg.backward_expert or shipped["backward"]}
@@ -235,13 +238,13 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
         raise PomilError(f"demos hopper: --action-noise must be -1 (the setting's) or >= 0, got {cfg.action_noise:g}")
     noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.action_noise == -1 else cfg.action_noise
     try:
-        demos = record_hopper_demos(experts, cfg.episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask),
+        demos = record_hopper_demos(experts, episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask),
                                     action_noise=noise)
     except ValueError as err:
         raise PomilError(f"demos hopper: {err}") from None
     demos.save(out)
     md = demos.metadata
-    print(f"wrote {out}: {demos.num_episodes} episodes ({cfg.episodes} per task, {cfg.setting} setting), "
+    print(f"wrote {out}: {demos.num_episodes} episodes ({episodes} per task, {cfg.setting} setting), "
           f"observation {md['observation_mask']}; expert returns "
           + ", ".join(f"{t} {md['expert_returns'][t]:.1f} (zero actions {md['still_returns'][t]:.1f})"
                       for t in experts))

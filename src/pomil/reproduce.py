@@ -41,7 +41,7 @@ from pomil.data import Demonstrations, atomic_write
 from pomil.envs import env_family
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
-from pomil.envs.locomotion import DEMO_ACTION_NOISE, HOPPER_EXPERTS
+from pomil.envs.locomotion import DEMO_ACTION_NOISE, DEMO_EPISODES, HOPPER_EXPERTS
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
 from pomil.eval.plots import figure1
@@ -540,7 +540,8 @@ class HopperReproConfig(LearnerRuns):
                           "results/hopper[-standard])")
     runs: str = option("", "where each run's checkpoint and logs go (default: runs/hopper[-standard])")
     demos: str = option("", "demonstrations (default: data/hopper-SETTING.npz); recorded from the experts if missing")
-    demo_episodes: int = option(200, "episodes per task when the demonstrations are recorded", within="[1, inf)")
+    demo_episodes: int = option(-1, "episodes per task when the demonstrations are recorded; -1: the setting's, "
+                                    "paper 200, standard 100", within="[-1, inf)")
     demo_action_noise: float = option(-1.0, "DART action noise when the demonstrations are recorded (pomil demos "
                                             "hopper --action-noise); -1: the setting's, paper 0, standard 0.1",
                                       within="[-1, inf)")
@@ -554,6 +555,8 @@ class HopperReproConfig(LearnerRuns):
     def __post_init__(self) -> None:
         if self.setting not in ("paper", "standard"):
             raise ValueError(f"setting must be 'paper' or 'standard', got {self.setting!r}")
+        if self.demo_episodes == 0:
+            raise ValueError("demo_episodes must be -1 (the setting's) or >= 1, got 0")
         if self.demo_action_noise < 0 and self.demo_action_noise != -1:
             raise ValueError(f"demo_action_noise must be -1 (the setting's) or >= 0, got {self.demo_action_noise}")
         check_runs(self)
@@ -583,7 +586,8 @@ def hopper_demos(cfg: HopperReproConfig) -> Path:
         raise PomilError(f"{path} is missing and so are the experts to record it from ({', '.join(missing)}); "
                          f"train them with `pomil experts hopper --task forward|backward --setting {cfg.setting}`")
     noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.demo_action_noise == -1 else cfg.demo_action_noise  # the setting's
-    demos = record_hopper_demos(experts, cfg.demo_episodes, cfg.setting, action_noise=noise)
+    episodes = DEMO_EPISODES[cfg.setting] if cfg.demo_episodes == -1 else cfg.demo_episodes
+    demos = record_hopper_demos(experts, episodes, cfg.setting, action_noise=noise)
     demos.save(path)
     dart = f" (DART action noise {noise:g})" if noise else ""
     print(f"recorded {path}: {demos.num_episodes} expert episodes{dart}", flush=True)

@@ -52,6 +52,10 @@ HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper'
                             for task in ("forward", "backward")} for setting in ("paper", "standard")}
 """Per setting, the shipped Hopper experts (relative to the repository root): the paper setting's never
 learned to stay healthy past 128 steps, so the standard setting has experts of its own."""
+DEMO_EPISODES = {"paper": 200, "standard": 100}
+"""Per setting, the demonstration episodes per task recorded by default (``pomil demos hopper --episodes``,
+``pomil reproduce hopper --demo-episodes``): what the committed results were measured on (the standard
+setting's episodes are up to 1000 steps, against the paper's 128)."""
 DEMO_ACTION_NOISE = {"paper": 0.0, "standard": 0.1}
 """Per setting, the DART action noise (``pomil demos hopper --action-noise``) its demonstrations are recorded with
 by default: the standard setting's episodes end when the hopper falls, and demonstrations that show recoveries
