@@ -138,7 +138,7 @@ def test_cli_demos_hopper_records_with_the_settings_action_noise_and_experts(tmp
     assert not (tmp_path / "bad.npz").exists()
 
 
-def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path):
+def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path, capsys):
     """`--first-seed` runs later seeds; `pomil reproduce merge` joins them with the earlier ones into one
     table of all seeds (runs in seed order, policies, summaries recomputed), and refuses other settings."""
     import json
@@ -173,6 +173,24 @@ def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path):
     run(2, "c", iterations="3")
     assert main(["reproduce", "merge", str(tmp_path / "a"), str(tmp_path / "c"), "--out", str(tmp_path / "y")]) == 2
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    # results committed without policies, recorded before a setting existed: --no-policies joins their metrics,
+    # and a setting that only one side records is named and not compared
+    import shutil
+
+    shutil.copytree(tmp_path / "a", tmp_path / "old")
+    shutil.rmtree(tmp_path / "old" / "policies")
+    old = json.loads((tmp_path / "old" / "metrics.json").read_text())
+    del old["bc_settings"]["lr"]
+    (tmp_path / "old" / "metrics.json").write_text(json.dumps(old))
+    capsys.readouterr()
+    assert main(["reproduce", "merge", str(tmp_path / "old"), str(tmp_path / "b"), "--out", str(tmp_path / "z")]) == 2
+    assert "bc-mlp-seed0.pt: missing" in capsys.readouterr().err and not (tmp_path / "z").exists()
+    assert main(["reproduce", "merge", str(tmp_path / "old"), str(tmp_path / "b"), "--out", str(tmp_path / "z"),
+                 "--no-policies"]) == 0
+    assert "bc_settings lr recorded by only one of" in capsys.readouterr().err
+    z = json.loads((tmp_path / "z" / "metrics.json").read_text())
+    assert z["seeds"] == 2 and z["policies_merged"] is False and not (tmp_path / "z" / "policies").exists()
+    assert z["learners"]["bc-mlp"]["runs"] == ab["learners"]["bc-mlp"]["runs"]
 
 
 def test_demo_episodes_default_to_the_settings(tmp_path, monkeypatch, capsys):

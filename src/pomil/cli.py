@@ -436,7 +436,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     if args.experiment == "merge":
         from pomil.reproduce import merge_task_results
 
-        merge_task_results([Path(r) for r in args.results], Path(args.out))
+        merge_task_results([Path(r) for r in args.results], Path(args.out), policies=args.policies)
         return 0
     if args.experiment == "tasks":
         cfg = config_from_args(HopperReproConfig, args)
@@ -597,6 +597,9 @@ def build_parser() -> argparse.ArgumentParser:
     rj.add_argument("results", nargs="+", help="results directories (each with metrics.json and policies/)")
     rj.add_argument("--out", required=True, help="where the merged metrics.json, table.md, figure.png and policies/ "
                                                  "go (may be the first results directory)")
+    rj.add_argument("--policies", action=argparse.BooleanOptionalAction, default=True,
+                    help="copy every run's policy into OUT/policies (each must exist); --no-policies joins the "
+                         "metrics alone, for results committed without policies (default: %(default)s)")
     rj.set_defaults(func=cmd_reproduce)
     return p
 

@@ -741,16 +741,18 @@ MERGE_FREE = {"config": ("out", "runs", "demos", "seeds", "first_seed", "ray", "
               "adversarial_settings": ("demos", "preset"), "bc_settings": ("demos", "preset")}
 
 
-def merge_task_results(sources: list[Path], out: Path) -> dict[str, Any]:
+def merge_task_results(sources: list[Path], out: Path, policies: bool = True) -> dict[str, Any]:
     """Join Hopper/tasks reproductions run on other seeds (``--first-seed``) into one, in ``out``:
     every learner's runs in seed order, its policies, the table and curves over all seeds.
 
     The reproductions must agree on what they measured: the experiment, the environment, setting,
     tasks, evaluation episodes, the demonstrations' reference returns, the success criteria, the
-    learners' resolved adversarial settings and BC settings (where both record them) and the
-    iterations; a learner's seeds must not repeat.  Success counts are recomputed from the runs
-    (:data:`TASKS_SUCCESS`).  Anything else is a one-line error before a file
-    is written."""
+    learners' resolved adversarial settings and BC settings (where both record them; a setting that
+    only one of them records, a field added to the config since the other ran, is named in a note
+    and not compared) and the iterations; a learner's seeds must not repeat.  Success counts are
+    recomputed from the runs (:data:`TASKS_SUCCESS`).  ``policies=False`` joins the metrics only
+    and copies no policy (for results committed without their policies).  Anything else is a
+    one-line error before a file is written."""
     import shutil
 
     loaded = []
@@ -785,7 +787,12 @@ def merge_task_results(sources: list[Path], out: Path) -> dict[str, Any]:
             same(f"config.{key}", first["config"].get(key), r["config"].get(key), src)
         for key in ("adversarial_settings", "bc_settings"):
             if key in first and key in r:
-                drop = MERGE_FREE[key]
+                drop = set(MERGE_FREE[key])
+                one_sided = sorted(set(first[key]) ^ set(r[key]))
+                if one_sided:
+                    print(f"pomil: note: {key} {', '.join(one_sided)} recorded by only one of {first_src} and "
+                          f"{src}: not compared", file=sys.stderr)
+                drop |= set(one_sided)
                 same(key, {k: v for k, v in first[key].items() if k not in drop},
                      {k: v for k, v in r[key].items() if k not in drop}, src)
             elif key in first or key in r:
@@ -805,20 +812,24 @@ def merge_task_results(sources: list[Path], out: Path) -> dict[str, Any]:
     if len(set(counts.values())) > 1:
         raise PomilError(f"the merged learners have different numbers of seeds ({counts}); merge reproductions "
                          "of the same learners")
-    policies = []
-    for src, r in loaded:
+    copies = []
+    for src, r in loaded if policies else []:
         for name, lr in r["learners"].items():
             for run in lr["runs"]:
                 policy = src / "policies" / f"{name}-seed{run['train_seed']}.pt"
                 if not policy.is_file():
-                    raise PomilError(f"{policy}: missing (every run's policy is merged with it)")
-                policies.append((policy, out / "policies" / policy.name))
+                    raise PomilError(f"{policy}: missing (every run's policy is merged with it; --no-policies "
+                                     "joins the metrics alone)")
+                copies.append((policy, out / "policies" / policy.name))
     for lr in merged["learners"].values():
         order = np.argsort([run["train_seed"] for run in lr["runs"]], kind="stable")
         for k in ("runs", "wall_s", "curves"):
             lr[k] = [lr[k][i] for i in order]
-    (out / "policies").mkdir(parents=True, exist_ok=True)
-    for policy, dest in policies:
+    out.mkdir(parents=True, exist_ok=True)
+    if copies:
+        (out / "policies").mkdir(exist_ok=True)
+    merged["policies_merged"] = policies
+    for policy, dest in copies:
         if policy.resolve() != dest.resolve():
             shutil.copyfile(policy, dest)
     write_task_results(out, merged)
