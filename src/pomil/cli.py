@@ -220,12 +220,13 @@ def cmd_demos_minari(args: argparse.Namespace) -> int:
 
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
     from pomil.demos import record_hopper_demos
-    from pomil.envs.locomotion import DEMO_ACTION_NOISE, DEMO_EPISODES, HOPPER_EXPERTS
+    from pomil.envs.locomotion import HOPPER_EXPERTS, demo_recording
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
-    if cfg.episodes == 0:
-        raise PomilError("demos hopper: --episodes must be -1 (the setting's) or >= 1, got 0")
-    episodes = DEMO_EPISODES[cfg.setting] if cfg.episodes == -1 else cfg.episodes
+    try:
+        episodes, noise = demo_recording(cfg.setting, cfg.episodes, cfg.action_noise, ("--episodes", "--action-noise"))
+    except ValueError as err:
+        raise PomilError(f"demos hopper: {err}") from None
     shipped = HOPPER_EXPERTS[cfg.setting]
     experts = {"forward": cfg.forward_expert or shipped["forward"],
                "backward": cfg.backward_expert or shipped["backward"]}
@@ -234,9 +235,6 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
         if not Path(path).is_file():
             raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
                              f"{task})")
-    if cfg.action_noise < 0 and cfg.action_noise != -1:
-        raise PomilError(f"demos hopper: --action-noise must be -1 (the setting's) or >= 0, got {cfg.action_noise:g}")
-    noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.action_noise == -1 else cfg.action_noise
     try:
         demos = record_hopper_demos(experts, episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask),
                                     action_noise=noise)

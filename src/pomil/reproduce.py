@@ -41,7 +41,7 @@ from pomil.data import Demonstrations, atomic_write
 from pomil.envs import env_family
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
-from pomil.envs.locomotion import DEMO_ACTION_NOISE, DEMO_EPISODES, HOPPER_EXPERTS
+from pomil.envs.locomotion import HOPPER_EXPERTS, demo_recording
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
 from pomil.eval.plots import figure1
@@ -555,10 +555,8 @@ class HopperReproConfig(LearnerRuns):
     def __post_init__(self) -> None:
         if self.setting not in ("paper", "standard"):
             raise ValueError(f"setting must be 'paper' or 'standard', got {self.setting!r}")
-        if self.demo_episodes == 0:
-            raise ValueError("demo_episodes must be -1 (the setting's) or >= 1, got 0")
-        if self.demo_action_noise < 0 and self.demo_action_noise != -1:
-            raise ValueError(f"demo_action_noise must be -1 (the setting's) or >= 0, got {self.demo_action_noise}")
+        demo_recording(self.setting, self.demo_episodes, self.demo_action_noise,
+                       ("demo_episodes", "demo_action_noise"))  # the values' check
         check_runs(self)
 
     @property
@@ -585,8 +583,7 @@ def hopper_demos(cfg: HopperReproConfig) -> Path:
     if missing:
         raise PomilError(f"{path} is missing and so are the experts to record it from ({', '.join(missing)}); "
                          f"train them with `pomil experts hopper --task forward|backward --setting {cfg.setting}`")
-    noise = DEMO_ACTION_NOISE[cfg.setting] if cfg.demo_action_noise == -1 else cfg.demo_action_noise  # the setting's
-    episodes = DEMO_EPISODES[cfg.setting] if cfg.demo_episodes == -1 else cfg.demo_episodes
+    episodes, noise = demo_recording(cfg.setting, cfg.demo_episodes, cfg.demo_action_noise)  # -1: the setting's
     demos = record_hopper_demos(experts, episodes, cfg.setting, action_noise=noise)
     demos.save(path)
     dart = f" (DART action noise {noise:g})" if noise else ""

@@ -61,6 +61,21 @@ DEMO_ACTION_NOISE = {"paper": 0.0, "standard": 0.1}
 by default: the standard setting's episodes end when the hopper falls, and demonstrations that show recoveries
 keep its clones up (docs/hopper.md); 0.1 is the largest noise measured that leaves the experts' returns as they
 were."""
+
+
+def demo_recording(setting: str, episodes: int, action_noise: float,
+                   names: tuple[str, str] = ("episodes", "action_noise")) -> tuple[int, float]:
+    """Episodes per task and DART action noise for recording ``setting``'s demonstrations: -1 (either) is the
+    setting's (:data:`DEMO_EPISODES`, :data:`DEMO_ACTION_NOISE`).  ValueError for 0 episodes or another negative
+    value, naming the field as ``names`` spell it (the command's flags)."""
+    if episodes == 0 or episodes < -1:
+        raise ValueError(f"{names[0]} must be -1 (the setting's) or >= 1, got {episodes}")
+    if action_noise < 0 and action_noise != -1:
+        raise ValueError(f"{names[1]} must be -1 (the setting's) or >= 0, got {action_noise:g}")
+    return (DEMO_EPISODES[setting] if episodes == -1 else episodes,
+            DEMO_ACTION_NOISE[setting] if action_noise == -1 else action_noise)
+
+
 FRAME_SKIP = 4
 # Hopper-v5's constructor defaults (gymnasium 1.x), plus the time limit of its registration.
 HOPPER_DEFAULTS: dict[str, Any] = {
