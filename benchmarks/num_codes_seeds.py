@@ -62,7 +62,8 @@ def search(path: Path, seed: int, overrides: dict[str, str]) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--datasets", default="two,four,hopper", help="comma-separated: two, four, hopper")
-    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--seeds", type=int, default=10, help="seeds per dataset: first-seed .. first-seed+seeds-1")
+    ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--data", default="runs/num_codes_seeds", help="where the circle demonstrations are recorded")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an AdversarialConfig setting (repeatable)")
@@ -77,7 +78,7 @@ def main() -> None:
     for name in names:
         path = dataset(name, Path(args.data))
         rows = []
-        for seed in range(args.seeds):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             rows.append(search(path, seed, overrides))
             print(f"{name} seed {seed}: K {rows[-1]['chosen']} ({rows[-1]['wall_s']:.0f} s)", file=sys.stderr)
         results[name] = {"true_k": TRUE_K[name], "demos": str(path), "runs": rows}
