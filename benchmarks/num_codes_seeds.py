@@ -8,7 +8,7 @@ are recorded into ``--data`` when missing: the ``two`` and ``four`` circle prese
 (``pomil demos circles``, 400 episodes) and Hopper Forward/Backward in the paper's setting
 (``data/hopper-paper.npz``, the committed demonstrations)::
 
-    .venv/bin/python benchmarks/num_codes_seeds.py --out benchmarks/results/num_codes_seeds.json   # 10 seeds: ~1 h
+    .venv/bin/python benchmarks/num_codes_seeds.py --out benchmarks/results/num_codes_seeds.json   # 10 seeds: ~2.5 h
     .venv/bin/python benchmarks/num_codes_seeds.py --datasets two --seeds 1 --set num_codes_max=2 \\
         --set num_codes_search_iterations=2 --out /tmp/nc.json                                       # a smoke run
 """

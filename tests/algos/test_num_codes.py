@@ -230,6 +230,28 @@ def test_an_auto_run_is_the_run_of_its_k_and_resumes_without_searching(demos_pat
     assert json.loads((auto / "config.json").read_text())["num_codes_evidence"] == a["record"]["num_codes_evidence"]
 
 
+def test_the_search_fits_on_the_fast_schedule_whatever_the_runs_warm_start(demos_path, monkeypatch, capsys):
+    """Each K's fit runs num_codes_search_iterations steps of the fast warm start's schedule (decaying lr, the log
+    std at 10x and fitted at the end), not the run's own 3000-step constant-rate warm start."""
+    import pomil.algos.adversarial as adv
+    from pomil.data import Demonstrations
+
+    seen = []
+    monkeypatch.setattr(adv, "clone_demonstrations", lambda policy, train, prev, k, mixture, cfg, *a: seen.append(
+        (k, mixture, cfg)) or {})
+    cfg = from_dict(AdversarialConfig, {"demos": str(demos_path), "num_codes": "auto", "num_codes_max": 3,
+                                        "num_codes_search_iterations": 7, "hidden_size": 8, "bc_init_lr": 1e-4})
+    demos = Demonstrations.load(demos_path).padded("cpu")
+    adv.auto_num_codes(cfg, demos, lambda a: a)
+    assert [(k, mixture) for k, mixture, _ in seen] == [(1, True), (2, True), (3, True)]
+    for _, _, fit in seen:
+        assert fit.bc_init_iterations == 7
+        assert {k: getattr(fit, k) for k in adv.FAST_WARM_START if k != "bc_init_iterations"} == {
+            "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_log_std_lr_scale": 10.0,
+            "bc_init_fit_log_std": True}
+    assert cfg.bc_init_lr == 1e-4 and cfg.bc_init_iterations == 3000  # the run's own warm start is left as it was
+
+
 def test_gail_ignores_auto_and_explicit_runs_record_nothing(demos_path, tmp_path, capsys):
     cfg = dict(demos=str(demos_path), iterations=0, num_envs=4, hidden_size=8, bc_init_iterations=1, eval_every=0,
                progress=False, num_codes_search_iterations=1)

@@ -134,7 +134,9 @@ class AdversarialConfig(RunConfig):
     num_codes_max: int = option(6, "with num_codes auto: the largest K tried (one warm start each)",
                                 within="[2, inf)")
     num_codes_search_iterations: int = option(500, "with num_codes auto: mixture warm-start steps of each K's fit "
-                                                   "on the training split (each ends with the log std's fit)",
+                                                   "on the training split, on the fast warm start's schedule "
+                                                   "(FAST_WARM_START: lr 3e-3 decaying to 0, the log std at 10x, "
+                                                   "its maximum-likelihood fit at the end) whatever the run's own",
                                               within="[1, inf)")
     num_codes_tolerance: float = option(0.05, "with num_codes auto: take the smallest K whose held-out score is "
                                               "within this fraction of the gain from K 1 to the best K",
@@ -807,12 +809,16 @@ def auto_num_codes(cfg: AdversarialConfig, expert: PaddedEpisodes, execute: Call
     """``--num-codes auto``: K from the demonstrations ``expert`` by the held-out classification
     likelihood of the mixture warm start (:mod:`pomil.algos.num_codes`).  Each K's policy is the run's, seeded by the
     run's seed and fitted by the run's warm start (:func:`clone_demonstrations`, always the codes'
-    mixture) for ``num_codes_search_iterations`` steps on the training split, then its log std set to
-    its maximum-likelihood value (``bc_init_fit_log_std``, whatever the run's own setting): a few hundred
-    Adam steps move the log std only about 1e-3 each, and the scores would measure mostly how far it got
-    (Hopper, 150 steps: K 3 ahead of K 2 without the fit, K 2 clearly ahead with it)."""
+    mixture) for ``num_codes_search_iterations`` steps on the training split, on the fast warm start's
+    schedule (:data:`FAST_WARM_START`, whatever the run's own warm start): the learning rate decays to 0
+    and the log std ends at its maximum-likelihood value.  The scores compare fits, so each K's fit must
+    be near its end: with the run's default schedule (lr 1e-3, constant) after 500 steps, the scores of
+    one K moved by about as much from seed to seed as the gain of the true K, and two circles chose 2
+    in 8 of 10 seeds; on this schedule, in every seed measured (docs/method.md).  Without the log std's
+    fit a few hundred Adam steps move it only about 1e-3 each, and the scores would measure mostly how
+    far it got (Hopper, 150 steps: K 3 ahead of K 2 without the fit, K 2 clearly ahead with it)."""
     expert = replace(expert, actions=execute(expert.actions))  # as the warm start sees them
-    search_cfg = replace(cfg, bc_init_iterations=cfg.num_codes_search_iterations, bc_init_fit_log_std=True)
+    search_cfg = replace(cfg, **{**FAST_WARM_START, "bc_init_iterations": cfg.num_codes_search_iterations})
 
     def fit(k: int, train: PaddedEpisodes, train_prev: torch.Tensor) -> GaussianPolicy:
         torch.manual_seed(cfg.seed)  # every K from the same random numbers: fewer differences by chance
