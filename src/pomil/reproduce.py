@@ -784,12 +784,11 @@ def merge_task_results(sources: list[Path], out: Path, policies: bool = True) ->
             same(f"config.{key}", first["config"].get(key), r["config"].get(key), src)
         for key in ("adversarial_settings", "bc_settings"):
             if key in first and key in r:
-                drop = set(MERGE_FREE[key])
                 one_sided = sorted(set(first[key]) ^ set(r[key]))
                 if one_sided:
                     print(f"pomil: note: {key} {', '.join(one_sided)} recorded by only one of {first_src} and "
                           f"{src}: not compared", file=sys.stderr)
-                drop |= set(one_sided)
+                drop = {*MERGE_FREE[key], *one_sided}
                 same(key, {k: v for k, v in first[key].items() if k not in drop},
                      {k: v for k, v in r[key].items() if k not in drop}, src)
             elif key in first or key in r:
