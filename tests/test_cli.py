@@ -187,6 +187,20 @@ def test_infogail_pomdp_trains_with_each_belief_encoder_and_its_policy_loads_and
     assert main(["evaluate", str(out), "--episodes-per-code", "2"]) == 0
 
 
+def test_infogail_pomdp_trains_in_bfloat16_and_records_it(tmp_path):
+    out = tmp_path / "bf16"
+    assert main(["train", "infogail-pomdp", "--precision", "bfloat16", "--demos", str(CIRCLES), "--out", str(out),
+                 *TINY_ADVERSARIAL]) == 0
+    assert json.loads((out / "config.json").read_text())["precision"] == "bfloat16"
+    ckpt = load_checkpoint(out / "checkpoint.pt")
+    assert all(v.dtype == torch.float32 for v in ckpt["nets"]["critic"].values())
+    with pytest.raises(SystemExit) as e:  # argparse names the choices
+        main(["train", "infogail-pomdp", "--precision", "float16", "--demos", str(CIRCLES),
+              "--out", str(tmp_path / "no"), *TINY_ADVERSARIAL])
+    assert e.value.code == 2
+    assert not (tmp_path / "no").exists()
+
+
 @pytest.mark.parametrize("encoder", ["lstm", "attention"])
 def test_bc_trains_each_encoder_and_the_checkpoint_rebuilds_the_same_policy(encoder, tmp_path):
     out = tmp_path / encoder

@@ -24,6 +24,7 @@ import random
 import socket
 import sys
 import time
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -61,6 +62,26 @@ def resolve_device(name: str | torch.device) -> torch.device:
     if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
         raise PomilError(f"device '{name}' requested but this machine has {torch.cuda.device_count()} CUDA device(s)")
     return device
+
+
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether ``device`` computes bfloat16 matrix products natively (a CPU with AVX512-BF16 or
+    AMX, as oneDNN reports it; a GPU that supports it): elsewhere they are emulated, and slower
+    than float32."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    return (device.type == "cpu" and torch.backends.mkldnn.is_available()
+            and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported()))
+
+
+def precision_context(precision: str, device: torch.device) -> AbstractContextManager[None]:
+    """What the updates' network passes run in: with ``bfloat16``, ``torch.autocast`` in bfloat16
+    (the matrix products and the recurrent cores' gates round to bfloat16; the networks' outputs,
+    losses, gradients and weights stay float32, see ``pomil.nn.heads``); with ``float32``, nothing
+    (bit for bit the computation without it)."""
+    if precision == "float32":
+        return nullcontext()
+    return torch.autocast(device.type, dtype=torch.bfloat16)
 
 
 # ----------------------------------------------------------------- checkpoints

@@ -138,6 +138,34 @@ def test_the_policy_phase_waits_out_the_warm_up_then_moves_the_policy(demos, mod
     assert changed(policy, run.m.policy)
 
 
+def test_bfloat16_updates_round_the_networks_passes_but_keep_outputs_losses_and_weights_float32(demos):
+    run32, c32 = make_run(demos, critic_steps=1, bc_weight=1.0)
+    run16, c16 = make_run(demos, critic_steps=1, bc_weight=1.0, precision="bfloat16")
+    roll = c32.rollout
+    critic = lambda run: run.m.critic.unroll(roll.observations, roll.prev_actions,  # noqa: E731
+                                             run.m.critic.initial_state(roll.num_envs), roll.starts,
+                                             extra=roll.executed_actions)[0]
+    f32 = critic(run32)
+    with run16.precision():
+        f16 = critic(run16)
+        dist, _ = run16.m.policy.unroll(roll.observations, roll.prev_actions, roll.h0_policy, roll.starts,
+                                        codes=roll.codes)
+    assert f16.dtype == dist.mean.dtype == torch.float32
+    gap = (f16 - f32).abs().max().item()
+    assert 0 < gap < 0.02 * f32.abs().max().item() + 1e-3  # rounded to bfloat16 inside, near float32's
+    s32 = update_critic(run32, roll)
+    with run16.precision():
+        s16 = update_critic(run16, roll)
+        update_posterior(run16, roll, c32.codes)
+        roll16, _ = with_rewards(run16, roll, c32.codes, c32.next_values)
+        p16 = update_policy(run16, roll16, it=2)
+    assert s16["critic/loss"] != s32["critic/loss"]
+    assert s16["critic/loss"] == pytest.approx(s32["critic/loss"], rel=0.05, abs=0.05)  # the same weights, one step
+    assert p16["ppo/approx_kl"] < 1e-2  # the bfloat16 policy's log-probs near the float32 rollout's
+    for net in (run16.m.policy, run16.m.value, run16.m.critic, run16.m.posterior):
+        assert all(p.dtype == torch.float32 and bool(p.isfinite().all()) for p in net.parameters())
+
+
 def test_no_function_in_algos_is_longer_than_a_screen():
     import ast
     from pathlib import Path

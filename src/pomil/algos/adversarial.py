@@ -38,7 +38,7 @@ import copy
 import math
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterator, Literal
@@ -64,7 +64,7 @@ from pomil.rl.gae import gae
 from pomil.rl.collect import collect
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
-from pomil.training import DivergenceGuard, RunLoop, load_checkpoint, lr_hint
+from pomil.training import DivergenceGuard, RunLoop, load_checkpoint, lr_hint, native_bfloat16, precision_context
 
 LEARNER_KINDS = {  # what each learner is made of (recurrent: belief encoders of kind ``belief_encoder``, else MLPs)
     "gail": {"recurrent": False, "codes": False, "critic_objective": "gan"},
@@ -123,6 +123,11 @@ class AdversarialConfig(RunConfig):
                                          "(warm-start, BC-term and critic batches): fewer than bc_init_batch and "
                                          "critic_batch episodes (1000-step Hopper: 16)", within="[1, inf)")
     sim: Literal["cpu", "warp"] = option("cpu", SIM_HELP)
+    precision: Literal["float32", "bfloat16"] = option(
+        "float32", "the updates' and the warm start's network passes (critic, posterior, policy and value; not the "
+                   "rollout's): float32, or bfloat16 through torch.autocast, with outputs, losses and weights in "
+                   "float32: about 2x faster updates on a CPU with bfloat16 instructions (AVX512-BF16, AMX), slower "
+                   "on one without; other numerics (docs/speed.md)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
@@ -586,6 +591,10 @@ class AdversarialRun:
             return self.episode_codes.codes[idx].detach()
         return sample_prior(self.cfg.code_prior, len(idx), self.num_codes, self.gen).to(idx.device)
 
+    def precision(self) -> AbstractContextManager[None]:
+        """The context of the updates' network passes (``precision``, :func:`pomil.training.precision_context`)."""
+        return precision_context(self.cfg.precision, self.expert.mask.device)
+
     def check(self, it: int, quantity: str, x: float | torch.Tensor) -> None:
         if self.guard is not None:
             self.guard.value(it, quantity, x)
@@ -779,6 +788,9 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         expert = demos.padded(loop.device)
         fit_input_scale(m.policy.encoder, expert.observations, expert.mask)
         opt = build_optimizers(cfg, m)
+        if cfg.precision == "bfloat16" and not native_bfloat16(loop.device):
+            print(f"pomil: note: precision bfloat16 on {loop.device}, which has no bfloat16 instructions (AVX512-BF16 "
+                  "or AMX): emulated, slower than float32", file=sys.stderr)
         if cfg.update_mode == "sequence" and cfg.minibatches > cfg.num_envs:
             print(f"pomil: note: minibatches {cfg.minibatches} is more than num_envs {cfg.num_envs}: each PPO epoch "
                   f"has {cfg.num_envs} minibatches of one episode", file=sys.stderr)
@@ -793,9 +805,11 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
                              shift_actions(expert.actions), execute, num_codes, loop.guard,
                              episode_codes=episode_codes)
-        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
-                                    episode_codes)
-                      if loop.iteration == 0 and cfg.bc_init_iterations > 0 else {})
+        init_stats = {}
+        if loop.iteration == 0 and cfg.bc_init_iterations > 0:
+            with run.precision():
+                init_stats = bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
+                                           episode_codes)
         run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
         return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
@@ -878,11 +892,11 @@ def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, i
         stats = {"env/true_return": env_rewards.sum(0).mean().item()}
         run.check(it, "environment reward", stats["env/true_return"])
         loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
-    with clock("critic"):
+    with clock("critic"), run.precision():
         stats.update(update_critic(run, roll, it))
-    with clock("posterior"):
+    with clock("posterior"), run.precision():
         stats.update(update_posterior(run, roll, code_idx, it))
-    with clock("ppo"):
+    with clock("ppo"), run.precision():
         roll, s = with_rewards(run, roll, code_idx, next_values, it)
         stats.update(s)
         stats.update(update_policy(run, roll, it))

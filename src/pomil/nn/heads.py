@@ -31,7 +31,7 @@ class BeliefHead(nn.Module):
 
     def _out(self, feats: torch.Tensor, extra: torch.Tensor | None) -> torch.Tensor:
         x = feats if extra is None else torch.cat([feats, extra], dim=-1)
-        y = self.mlp(x)
+        y = self.mlp(x).float()  # float32 outputs whatever the autocast (precision bfloat16): the losses' own
         return y.squeeze(-1) if self.out_dim == 1 else y
 
     def step(self, obs, prev_action, h, start, extra=None) -> tuple[torch.Tensor, torch.Tensor]:

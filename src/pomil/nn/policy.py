@@ -90,7 +90,7 @@ class GaussianPolicy(nn.Module):
             if codes is None:
                 raise ValueError("this policy has latent codes: pass them (one-hot, or continuous)")
             features = features + self.code_embed(codes)
-        mean = self.mean(features)
+        mean = self.mean(features).float()  # float32 under an autocast too (precision bfloat16), as the log std
         if self.arch.tanh_mean:
             mean = torch.tanh(mean)
         # No argument validation: the NaN of a diverging policy must reach the loss, where the
