@@ -14,16 +14,19 @@ Prints env-steps/s of:
    so that only the loop is timed);
 6. with ``--rollout-threads 1,0``: item 5 once per setting of the
    ``rollout_threads`` option (1, the default: the rollout's policy steps on one
-   torch thread; 0: torch's own thread count), to show what it is worth;
+   torch thread; 0: torch's own thread count), to show what it is worth; with
+   ``--precision float32,bfloat16`` once per ``precision`` (bfloat16: the updates'
+   network passes under ``torch.autocast``);
 7. the peers, when the ``bench`` extra is installed (``pip install -e '.[bench]'``):
    Stable-Baselines3's PPO (MLP) and sb3-contrib's RecurrentPPO (LSTM) training on
    the same task (Hopper-v5, paper setting, positions only), ``--peer-envs`` envs in
    SB3's ``DummyVecEnv``, SB3's defaults except ``n_steps`` (so that a rollout is
    ``--peer-envs`` x 256 steps), ``--iterations`` rollouts each.  The last lines
-   print pomil's InfoGAIL-POMDP training / each peer, from this one run.
+   print each InfoGAIL-POMDP training row / the batched simulator (issue 15: at least
+   50%) and / each peer (at least 3x SB3 PPO), from this one run.
 
     .venv/bin/python benchmarks/hopper_speed.py [--num-envs 256] [--iterations 3] [--device cpu]
-        [--train-envs 256,1024,4096] [--rollout-threads 1,0] [--peer-envs 8]
+        [--train-envs 256,1024,4096] [--rollout-threads 1,0] [--precision float32,bfloat16] [--peer-envs 8]
 
 ``--train-envs`` times InfoGAIL-POMDP training once per number of parallel
 environments (for a GPU: many environments, large batches).
@@ -97,11 +100,13 @@ def main() -> None:
     ap.add_argument("--train-envs", default="", help="comma-separated env counts for 5 (default: --num-envs)")
     ap.add_argument("--rollout-threads", default="1",
                     help="comma-separated rollout_threads settings for 5 (0: torch's own)")
+    ap.add_argument("--precision", default="float32",
+                    help="comma-separated precision settings for 5 (float32, bfloat16)")
     ap.add_argument("--peer-envs", type=int, default=8, help="environments of the SB3 peers (7; 0: skip them)")
     args = ap.parse_args()
     n = args.num_envs
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
-    settings = [int(v) for v in args.rollout_threads.split(",")]
+    settings = [(int(t), p) for t in args.rollout_threads.split(",") for p in args.precision.split(",")]
     kw = hopper_kwargs("forward", "paper")
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
     print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, "
@@ -116,21 +121,22 @@ def main() -> None:
         rows.append(("expert PPO training (64 envs, MLP)",
                      float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
         for m in train_envs:
-            for threads in settings:
-                run = Path(tmp) / f"ip{m}-{threads}"
+            for threads, precision in settings:
+                run = Path(tmp) / f"ip{m}-{threads}-{precision}"
                 values = {"learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
                           "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0,
                           "eval_every": 0,
                           "log_every": 1, "progress": False, "device": args.device, "num_envs": m,
-                          "rollout_threads": threads}
+                          "rollout_threads": threads, "precision": precision}
                 train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
                 row = last_row(run)
-                threads_note = f", rollout_threads {threads}" if len(settings) > 1 else ""
-                what = f"InfoGAIL-POMDP training ({m} envs, all updates{threads_note})"
+                note = (f", rollout_threads {threads}" if len({t for t, _ in settings}) > 1 else "") + (
+                    f", {precision}" if len({p for _, p in settings}) > 1 else "")
+                what = f"InfoGAIL-POMDP training ({m} envs, all updates{note})"
                 rows.append((what, float(row["time/env_steps_per_s"])))
                 shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
                 share_lines.append(f"time shares, {what}: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
-    ours = rows[-1][1]  # InfoGAIL-POMDP training, the last setting timed
+    ours = [(what, v) for what, v in rows if what.startswith("InfoGAIL-POMDP training")]
     peers = []
     for kind, name in (("ppo", "SB3 PPO (MLP)"), ("recurrent", "sb3-contrib RecurrentPPO (LSTM)")):
         v = peer_speed(kind, args.demos, args.peer_envs, args.iterations, args.device) if args.peer_envs else None
@@ -144,9 +150,12 @@ def main() -> None:
     print("\n".join(share_lines))
     if not peers and args.peer_envs:
         print("peers: not measured (pip install -e '.[bench]' for SB3 and sb3-contrib)")
-    for name in peers:
-        v = next(v for n, v in rows if n.startswith(name))
-        print(f"pomil InfoGAIL-POMDP training / {name}: {ours / v:.2f}x")
+    sim = rows[0][1]
+    for what, v in ours:  # the ratios of issue 15, from this one run
+        print(f"{what} / batched simulator: {v / sim:.0%}")
+        for name in peers:
+            peer = next(p for n, p in rows if n.startswith(name))
+            print(f"{what} / {name}: {v / peer:.2f}x")
 
 
 if __name__ == "__main__":

@@ -1,19 +1,22 @@
-"""The warm start's time and fit, the earlier recipe against the defaults, in one run.
+"""The warm start's time and fit under each recipe, from the same initial networks, in one run.
 
 For each demonstrations file, learner and seed, runs ``bc_warm_start`` (the adversarial
-learners' behaviour-cloning warm start, with its posterior steps) twice from the same
-initial networks:
+learners' behaviour-cloning warm start, with its posterior steps) once per recipe:
 
-* ``3000 steps``: the warm start before issue 15 -- 3000 Adam steps at lr 1e-3, the log
-  std at the same rate, no decay, no closed-form fit;
-* ``defaults``: ``AdversarialConfig``'s warm start.
+* ``default``: ``AdversarialConfig``'s warm start (3000 Adam steps at lr 1e-3);
+* ``fast``: the ``fast-warm-start`` preset (600 steps, lr 3e-3 decaying to 0, the log std
+  at 10x and fitted in closed form at the end);
+* ``bf16``: the default's steps with ``precision`` bfloat16 (``torch.autocast``);
+* ``fast-bf16``: both.
 
 and prints its wall time, the policy part's time, and the demonstrations' negative
-log-likelihood per step on *all* episodes at the end (the mixture likelihood of
-``mixture_bc_loss`` for learners with codes, the plain one for GAIL), with the ratios.
+log-likelihood per step on *all* episodes at the end (in float32: the mixture likelihood of
+``mixture_bc_loss`` for learners with codes, the plain one for GAIL), with each recipe's
+time ratio and NLL change against the first one::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/warm_start_speed.py \
-        [--demos data/circles.npz,data/hopper-paper.npz] [--learners infogail-pomdp] [--seeds 0]
+        [--demos data/circles.npz,data/hopper-paper.npz] [--learners infogail-pomdp] [--seeds 0] \
+        [--recipes default,fast,bf16,fast-bf16]
 """
 
 from __future__ import annotations
@@ -24,14 +27,17 @@ from dataclasses import replace
 
 import torch
 
-from pomil.algos.adversarial import AdversarialConfig, bc_warm_start, build_modules, resolve_num_codes
+from pomil.algos.adversarial import (
+    FAST_WARM_START, AdversarialConfig, bc_warm_start, build_modules, resolve_num_codes,
+)
 from pomil.algos.bc import _nll, episode_features, mixture_bc_loss
 from pomil.data import load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.nn.policy import shift_actions
+from pomil.training import precision_context
 
-BEFORE = {"bc_init_iterations": 3000, "bc_init_lr": 1e-3, "bc_init_lr_decay": False,
-          "bc_init_log_std_lr_scale": 1.0, "bc_init_fit_log_std": False}
+RECIPES = {"default": {}, "fast": FAST_WARM_START, "bf16": {"precision": "bfloat16"},
+           "fast-bf16": {**FAST_WARM_START, "precision": "bfloat16"}}
 
 
 @torch.no_grad()
@@ -53,13 +59,16 @@ def measure(demos_path: str, learner: str, seed: int, settings: dict) -> dict[st
     prev = shift_actions(expert.actions)
     mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
     gen = torch.Generator().manual_seed(seed)
+    precision = precision_context(cfg.precision, torch.device("cpu"))  # as train_adversarial runs it
     t0 = time.perf_counter()
-    bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, posterior_init_iterations=0), gen)
+    with precision:
+        bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, posterior_init_iterations=0), gen)
     policy_s = time.perf_counter() - t0
     nll = demo_nll(m.policy, expert, prev, mixture)
     t1 = time.perf_counter()
-    if mixture:  # the posterior's steps (the same in both recipes), timed on their own
-        bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, bc_init_iterations=0), gen)
+    if mixture:  # the posterior's steps (the same number in every recipe), timed on their own
+        with precision_context(cfg.precision, torch.device("cpu")):
+            bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, bc_init_iterations=0), gen)
     return {"seconds": policy_s + time.perf_counter() - t1, "policy_s": policy_s, "nll": nll,
             "log_std": m.policy.log_std.mean().item()}
 
@@ -69,21 +78,23 @@ def main() -> None:
     ap.add_argument("--demos", default="data/circles.npz,data/hopper-paper.npz")
     ap.add_argument("--learners", default="infogail-pomdp")
     ap.add_argument("--seeds", default="0")
+    ap.add_argument("--recipes", default=",".join(RECIPES), help=f"comma-separated, some of {list(RECIPES)}")
     args = ap.parse_args()
+    recipes = args.recipes.split(",")
+    if not recipes or any(r not in RECIPES for r in recipes):
+        ap.error(f"--recipes: expected some of {list(RECIPES)}, got {args.recipes!r}")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} torch threads")
     print(f"{'demonstrations':24s} {'learner':15s} {'seed':>4s} {'recipe':10s} {'s':>7s} {'policy s':>9s} "
-          f"{'NLL':>8s} {'log std':>8s}")
+          f"{'NLL':>8s} {'log std':>8s} {'time ratio':>11s} {'NLL change':>11s}")
     for demos in args.demos.split(","):
         for learner in args.learners.split(","):
             for seed in (int(s) for s in args.seeds.split(",")):
-                rows = {name: measure(demos, learner, seed, s) for name, s in (("3000 steps", BEFORE),
-                                                                               ("defaults", {}))}
+                rows = {name: measure(demos, learner, seed, RECIPES[name]) for name in recipes}
+                first = rows[recipes[0]]
                 for name, r in rows.items():
                     print(f"{demos:24s} {learner:15s} {seed:4d} {name:10s} {r['seconds']:7.1f} {r['policy_s']:9.1f} "
-                          f"{r['nll']:8.3f} {r['log_std']:8.2f}")
-                a, b = rows["3000 steps"], rows["defaults"]
-                print(f"{'':24s} {'':15s} {'':4s} {'ratio':10s} {a['seconds'] / b['seconds']:6.1f}x "
-                      f"{a['policy_s'] / b['policy_s']:8.1f}x  NLL {b['nll'] - a['nll']:+.3f}", flush=True)
+                          f"{r['nll']:8.3f} {r['log_std']:8.2f} {first['seconds'] / r['seconds']:10.1f}x "
+                          f"{r['nll'] - first['nll']:+11.3f}", flush=True)
 
 
 if __name__ == "__main__":

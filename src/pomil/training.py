@@ -78,10 +78,12 @@ def precision_context(precision: str, device: torch.device) -> AbstractContextMa
     """What the updates' network passes run in: with ``bfloat16``, ``torch.autocast`` in bfloat16
     (the matrix products and the recurrent cores' gates round to bfloat16; the networks' outputs,
     losses, gradients and weights stay float32, see ``pomil.nn.heads``); with ``float32``, nothing
-    (bit for bit the computation without it)."""
+    (bit for bit the computation without it).  autocast's cache of bfloat16 weight copies is off:
+    it lives as long as the context, so a context around several optimiser steps (a phase, the
+    warm start) would go on computing with the weights of its first step."""
     if precision == "float32":
         return nullcontext()
-    return torch.autocast(device.type, dtype=torch.bfloat16)
+    return torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=False)
 
 
 # ----------------------------------------------------------------- checkpoints

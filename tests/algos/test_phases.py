@@ -156,9 +156,12 @@ def test_bfloat16_updates_round_the_networks_passes_but_keep_outputs_losses_and_
     s32 = update_critic(run32, roll)
     with run16.precision():
         s16 = update_critic(run16, roll)
+        after16 = critic(run16)  # in the same context: the updated weights, not a cached bfloat16 copy
         update_posterior(run16, roll, c32.codes)
         roll16, _ = with_rewards(run16, roll, c32.codes, c32.next_values)
         p16 = update_policy(run16, roll16, it=2)
+    moved32, moved16 = critic(run32) - f32, after16 - f16
+    assert torch.corrcoef(torch.stack([moved16.flatten(), moved32.flatten()]))[0, 1] > 0.8  # moved alike
     assert s16["critic/loss"] != s32["critic/loss"]
     assert s16["critic/loss"] == pytest.approx(s32["critic/loss"], rel=0.05, abs=0.05)  # the same weights, one step
     assert p16["ppo/approx_kl"] < 1e-2  # the bfloat16 policy's log-probs near the float32 rollout's
