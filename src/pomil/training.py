@@ -24,10 +24,10 @@ import random
 import socket
 import sys
 import time
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 import torch
@@ -78,12 +78,23 @@ def precision_context(precision: str, device: torch.device) -> AbstractContextMa
     """What the updates' network passes run in: with ``bfloat16``, ``torch.autocast`` in bfloat16
     (the matrix products and the recurrent cores' gates round to bfloat16; the networks' outputs,
     losses, gradients and weights stay float32, see ``pomil.nn.heads``); with ``float32``, nothing
-    (bit for bit the computation without it).  autocast's cache of bfloat16 weight copies is off:
-    it lives as long as the context, so a context around several optimiser steps (a phase, the
-    warm start) would go on computing with the weights of its first step."""
+    (bit for bit the computation without it).  Enter it once per optimiser step, around the
+    forward pass: autocast caches each weight's bfloat16 copy until the context ends, so a context
+    around several steps (a phase, the warm start) would go on computing with the weights of its
+    first step.  Its end clears that cache even inside an enclosing autocast (whose own end would
+    be the first to clear it otherwise)."""
     if precision == "float32":
         return nullcontext()
-    return torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=False)
+    return _bfloat16_autocast(device.type)
+
+
+@contextmanager
+def _bfloat16_autocast(device_type: str) -> Iterator[None]:
+    try:
+        with torch.autocast(device_type, dtype=torch.bfloat16):
+            yield
+    finally:
+        torch.clear_autocast_cache()
 
 
 # ----------------------------------------------------------------- checkpoints

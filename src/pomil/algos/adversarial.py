@@ -628,8 +628,9 @@ def update_critic(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, 
         e_act, e_prev = (noisy_expert_actions(run.expert, m.policy, run.execute, run.gen) if cfg.expert_action_noise
                          else (run.expert.actions, run.expert_prev))
         expert = run.sampler.expert(run.expert, e_act, e_prev, cfg.critic_batch, run.gen)
-        loss, s = critic_loss(m.critic, expert, run.sampler.policy(roll, cfg.critic_batch, run.gen),
-                              run.objective, cfg.gradient_penalty)
+        with run.precision():
+            loss, s = critic_loss(m.critic, expert, run.sampler.policy(roll, cfg.critic_batch, run.gen),
+                                  run.objective, cfg.gradient_penalty)
         run.check(it, "critic loss", s["critic/loss"])
         run.step(it, "critic", loss, m.critic.parameters)
         if cfg.weight_clip > 0 and run.objective == "wasserstein":
@@ -646,7 +647,8 @@ def update_posterior(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor,
     code_steps = code_idx.unsqueeze(0).expand(roll.num_steps, *code_idx.shape)
     for _ in range(run.cfg.posterior_steps):
         for batch_idx, batch in run.sampler.posterior(roll, code_steps, run.gen):
-            loss, s = posterior_loss(run.m.posterior, batch, batch_idx, run.cfg.code_kind)
+            with run.precision():
+                loss, s = posterior_loss(run.m.posterior, batch, batch_idx, run.cfg.code_kind)
             run.check(it, "posterior loss", s["posterior/loss"])
             run.step(it, "posterior", loss, run.m.posterior.parameters)
     return s
@@ -655,7 +657,8 @@ def update_posterior(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor,
 def with_rewards(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor, next_values: torch.Tensor,
                  it: int = 0) -> tuple[Rollout, dict[str, float]]:
     """The rollout with the imitation rewards (:func:`rewards`), GAE advantages and returns."""
-    r, s = rewards(run.m, roll, code_idx, run.cfg, run.objective)
+    with run.precision():
+        r, s = rewards(run.m, roll, code_idx, run.cfg, run.objective)
     run.check(it, "reward", r)
     cfg, terminated = run.cfg, roll.terminated
     if cfg.termination == "absorbing" and bool(terminated.any()):
@@ -690,7 +693,8 @@ def update_policy(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, 
     behaviour = run.sampler.behaviour(run.m.policy, run.m.value)
     for _ in range(run.cfg.ppo_epochs):
         for b in run.sampler.minibatches(roll, run.cfg.minibatches, run.gen):
-            s = ppo_step(run, behaviour(b), it)
+            with run.precision():  # one context a step: autocast's weight copies last as long as it does
+                s = ppo_step(run, behaviour(b), it)
     return s
 
 
@@ -805,11 +809,9 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
                              shift_actions(expert.actions), execute, num_codes, loop.guard,
                              episode_codes=episode_codes)
-        init_stats = {}
-        if loop.iteration == 0 and cfg.bc_init_iterations > 0:
-            with run.precision():
-                init_stats = bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
-                                           episode_codes)
+        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
+                                    episode_codes)
+                      if loop.iteration == 0 and cfg.bc_init_iterations > 0 else {})
         run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
         return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
@@ -832,7 +834,8 @@ def auto_num_codes(cfg: AdversarialConfig, expert: PaddedEpisodes, execute: Call
     fit a few hundred Adam steps move it only about 1e-3 each, and the scores would measure mostly how
     far it got (Hopper, 150 steps: K 3 ahead of K 2 without the fit, K 2 clearly ahead with it)."""
     expert = replace(expert, actions=execute(expert.actions))  # as the warm start sees them
-    search_cfg = replace(cfg, **{**FAST_WARM_START, "bc_init_iterations": cfg.num_codes_search_iterations})
+    search_cfg = replace(cfg, **{**FAST_WARM_START, "bc_init_iterations": cfg.num_codes_search_iterations,
+                                 "precision": "float32"})  # scores a few hundredths of a nat apart: no rounding
 
     def fit(k: int, train: PaddedEpisodes, train_prev: torch.Tensor) -> GaussianPolicy:
         torch.manual_seed(cfg.seed)  # every K from the same random numbers: fewer differences by chance
@@ -892,11 +895,11 @@ def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, i
         stats = {"env/true_return": env_rewards.sum(0).mean().item()}
         run.check(it, "environment reward", stats["env/true_return"])
         loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
-    with clock("critic"), run.precision():
+    with clock("critic"):
         stats.update(update_critic(run, roll, it))
-    with clock("posterior"), run.precision():
+    with clock("posterior"):
         stats.update(update_posterior(run, roll, code_idx, it))
-    with clock("ppo"), run.precision():
+    with clock("ppo"):
         roll, s = with_rewards(run, roll, code_idx, next_values, it)
         stats.update(s)
         stats.update(update_policy(run, roll, it))
@@ -963,8 +966,9 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
     for _ in range(cfg.posterior_init_iterations):
         idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
         targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
-        loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
-                           starts[:, idx], expert.mask[:, idx], targets)
+        with precision_context(cfg.precision, starts.device):
+            loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
+                               starts[:, idx], expert.mask[:, idx], targets)
         if guard is not None:
             guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
         post_opt.zero_grad(set_to_none=True)
@@ -1004,7 +1008,8 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
                                             gen).to(idx.device)
     stats: dict[str, float] = {}
     for step in range(1, cfg.bc_init_iterations + 1):
-        stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
+        with precision_context(cfg.precision, expert.mask.device):
+            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
         decay.step()
         if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
             episode_codes.spread_()
@@ -1026,7 +1031,8 @@ def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_
     stats: dict[str, float] = {}
     assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
     for step in range(1, cfg.bc_init_iterations + 1):
-        stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
+        with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
+            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
         decay.step()
         check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
     if cfg.bc_init_fit_log_std:
