@@ -187,9 +187,11 @@ def test_infogail_pomdp_trains_with_each_belief_encoder_and_its_policy_loads_and
     assert main(["evaluate", str(out), "--episodes-per-code", "2"]) == 0
 
 
-def test_infogail_pomdp_trains_in_bfloat16_and_records_it(tmp_path):
+@pytest.mark.parametrize("learner", [["infogail-pomdp"], ["infogail-pomdp", "--belief-encoder", "attention"],
+                                     ["gail"]])
+def test_adversarial_learners_train_in_bfloat16_and_record_it(learner, tmp_path):
     out = tmp_path / "bf16"
-    assert main(["train", "infogail-pomdp", "--precision", "bfloat16", "--demos", str(CIRCLES), "--out", str(out),
+    assert main(["train", *learner, "--precision", "bfloat16", "--demos", str(CIRCLES), "--out", str(out),
                  *TINY_ADVERSARIAL]) == 0
     assert json.loads((out / "config.json").read_text())["precision"] == "bfloat16"
     ckpt = load_checkpoint(out / "checkpoint.pt")
