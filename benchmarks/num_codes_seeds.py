@@ -11,11 +11,17 @@ are recorded into ``--data`` when missing: the ``two`` and ``four`` circle prese
     .venv/bin/python benchmarks/num_codes_seeds.py --out benchmarks/results/num_codes_seeds.json   # 10 seeds: ~2.5 h
     .venv/bin/python benchmarks/num_codes_seeds.py --datasets two --seeds 1 --set num_codes_max=2 \\
         --set num_codes_search_iterations=2 --out /tmp/nc.json                                       # a smoke run
+    .venv/bin/python benchmarks/num_codes_seeds.py --rechoose benchmarks/results/num_codes_seeds.json  # seconds
+
+``--rechoose`` runs no search: it takes the held-out scores recorded in a JSON this script
+wrote and chooses K again by today's criterion (``choose_num_codes`` with the config's
+``num_codes_tolerance`` and ``num_codes_min_gain``, or those given with ``--set``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -24,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from pomil.algos.adversarial import AdversarialConfig, auto_num_codes
+from pomil.algos.num_codes import choose_num_codes
 from pomil.config import from_dict, parse_kwargs
 from pomil.data import load_training_demos
 from pomil.envs import executed_actions_fn
@@ -68,20 +75,14 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an AdversarialConfig setting (repeatable)")
     ap.add_argument("--out", default="", help="JSON of every search")
+    ap.add_argument("--rechoose", default="", metavar="JSON",
+                    help="no search: choose K again from the scores recorded in this JSON (written by this script)")
     args = ap.parse_args()
-    names = [n for n in args.datasets.split(",") if n]
-    unknown = [n for n in names if n not in TRUE_K]
-    if unknown:
-        sys.exit(f"--datasets: unknown {unknown}; expected some of {list(TRUE_K)}")
     overrides = dict(kv.split("=", 1) for kv in args.set)
-    results: dict[str, Any] = {}
-    for name in names:
-        path = dataset(name, Path(args.data))
-        rows = []
-        for seed in range(args.first_seed, args.first_seed + args.seeds):
-            rows.append(search(path, seed, overrides))
-            print(f"{name} seed {seed}: K {rows[-1]['chosen']} ({rows[-1]['wall_s']:.0f} s)", file=sys.stderr)
-        results[name] = {"true_k": TRUE_K[name], "demos": str(path), "runs": rows}
+    if args.rechoose:
+        results = rechoose(json.loads(Path(args.rechoose).read_text())["datasets"], overrides)
+    else:
+        results = run_searches(args, overrides)
     print("| demonstrations | true K | chosen K per seed | true K chosen | search wall s (mean) |")
     print("|---|---|---|---|---|")
     for name, r in results.items():
@@ -91,6 +92,31 @@ def main() -> None:
               f"{np.mean([x['wall_s'] for x in r['runs']]):.0f} |")
     if args.out:
         write_json(Path(args.out), {"settings": overrides, "datasets": results})
+
+
+def run_searches(args: argparse.Namespace, overrides: dict[str, str]) -> dict[str, Any]:
+    names = [n for n in args.datasets.split(",") if n]
+    unknown = [n for n in names if n not in TRUE_K]
+    if unknown:
+        sys.exit(f"--datasets: unknown {unknown}; expected some of {list(TRUE_K)}")
+    results: dict[str, Any] = {}
+    for name in names:
+        path = dataset(name, Path(args.data))
+        rows = []
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            rows.append(search(path, seed, overrides))
+            print(f"{name} seed {seed}: K {rows[-1]['chosen']} ({rows[-1]['wall_s']:.0f} s)", file=sys.stderr)
+        results[name] = {"true_k": TRUE_K[name], "demos": str(path), "runs": rows}
+    return results
+
+
+def rechoose(datasets: dict[str, Any], overrides: dict[str, str]) -> dict[str, Any]:
+    """``datasets`` with each run's K chosen again from its recorded scores by today's criterion."""
+    cfg = from_dict(AdversarialConfig, {**overrides, "demos": "x.npz"}, source="--set")
+    return {name: {**r, "runs": [{**run, "chosen": choose_num_codes({int(k): v for k, v in run["scores"].items()},
+                                                                    cfg.num_codes_tolerance, cfg.num_codes_min_gain)}
+                                 for run in r["runs"]]}
+            for name, r in datasets.items()}
 
 
 if __name__ == "__main__":
