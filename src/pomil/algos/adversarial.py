@@ -126,8 +126,8 @@ class AdversarialConfig(RunConfig):
     precision: Literal["float32", "bfloat16"] = option(
         "float32", "the updates' and the warm start's network passes (critic, posterior, policy and value; not the "
                    "rollout's): float32, or bfloat16 through torch.autocast, with outputs, losses and weights in "
-                   "float32: about 2x faster updates on a CPU with bfloat16 instructions (AVX512-BF16, AMX), slower "
-                   "on one without; other numerics (docs/speed.md)")
+                   "float32; measured on a CPU with bfloat16 instructions (AVX512-BF16): the training loop 7-9% faster "
+                   "on two torch threads, 1.34x on one; slower on a CPU without them; other numerics (docs/speed.md)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
