@@ -127,6 +127,23 @@ def test_help_shows_the_interval():
     assert "in (0, 1]" in text and "in (0, inf)" in text
 
 
+def test_every_commands_help_renders_with_percent_signs_in_field_docs():
+    import argparse
+
+    from pomil.cli import build_parser
+
+    def parsers(parser):
+        yield parser
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for child in action.choices.values():
+                    yield from parsers(child)
+
+    texts = [p.format_help() for p in parsers(build_parser())]
+    assert len(texts) > 10
+    assert any("7-9% faster" in t for t in texts)  # AdversarialConfig.precision's docs, printed as written
+
+
 def test_a_renamed_key_is_still_read_with_a_note_and_both_names_at_once_are_refused(capsys):
     assert from_dict(ExpertConfig, {"epochs": 3}).ppo_epochs == 3
     assert "'epochs' is now called 'ppo_epochs'" in capsys.readouterr().err

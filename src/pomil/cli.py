@@ -39,6 +39,7 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
         interval = field_interval(f)
         words = "".join(f" or {word}" for word in field_names(f))
         help_text = f"{field_help(f)} (default: {default!r}{'; in ' + interval.text + words if interval else ''})"
+        help_text = help_text.replace("%", "%%")  # argparse formats help with %; a field's docs may say "9%"
         if tp is bool:
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_text)
             continue
