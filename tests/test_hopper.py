@@ -191,6 +191,21 @@ def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path, capsys):
     z = json.loads((tmp_path / "z" / "metrics.json").read_text())
     assert z["seeds"] == 2 and z["policies_merged"] is False and not (tmp_path / "z" / "policies").exists()
     assert z["learners"]["bc-mlp"]["runs"] == ab["learners"]["bc-mlp"]["runs"]
+    # the same experts recorded again where floats differ: reference returns 0.5% apart merge with a note and
+    # both references kept; 5% apart (other experts or tasks) are refused
+    for name, factor in (("near", 1.005), ("far", 1.05)):
+        shutil.copytree(tmp_path / "b", tmp_path / name)
+        moved = json.loads((tmp_path / name / "metrics.json").read_text())
+        moved["reference"]["expert_returns"] = {t: v * factor for t, v in moved["reference"]["expert_returns"].items()}
+        (tmp_path / name / "metrics.json").write_text(json.dumps(moved))
+    capsys.readouterr()
+    assert main(["reproduce", "merge", str(tmp_path / "a"), str(tmp_path / "near"), "--out", str(tmp_path / "n")]) == 0
+    assert "reference.expert_returns differs from" in capsys.readouterr().err
+    n = json.loads((tmp_path / "n" / "metrics.json").read_text())
+    assert [m["reference"]["expert_returns"] for m in n["merged_from"]] == [
+        a["reference"]["expert_returns"], {t: v * 1.005 for t, v in b["reference"]["expert_returns"].items()}]
+    assert main(["reproduce", "merge", str(tmp_path / "a"), str(tmp_path / "far"), "--out", str(tmp_path / "f")]) == 2
+    assert "reference.expert_returns differs" in capsys.readouterr().err and not (tmp_path / "f").exists()
 
 
 def test_demo_episodes_default_to_the_settings(tmp_path, monkeypatch, capsys):
