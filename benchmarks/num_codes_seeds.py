@@ -63,7 +63,7 @@ def search(path: Path, seed: int, overrides: dict[str, str]) -> dict[str, Any]:
     t0 = time.perf_counter()
     choice = auto_num_codes(cfg, demos.padded("cpu"), executed_actions_fn(env_id, env_kwargs))
     return {"seed": seed, "chosen": choice.chosen, "scores": {str(k): v for k, v in choice.scores.items()},
-            "wall_s": time.perf_counter() - t0}
+            "wall_s": time.perf_counter() - t0, "heldout_episodes": choice.record().get("num_codes_heldout_episodes")}
 
 
 def main() -> None:

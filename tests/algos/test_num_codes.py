@@ -12,6 +12,7 @@ import torch
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.num_codes import (NumCodesChoice, choose_num_codes, classification_log_likelihood,
                                    code_posterior_entropy, heldout_score, heldout_split, mixture_log_likelihood,
+                                   paired_standard_error,
                                    search_num_codes)
 from pomil.cli import main
 from pomil.config import from_dict, load_config_file, to_dict
@@ -110,6 +111,21 @@ def test_heldout_score_is_the_classification_likelihood_per_step_of_a_known_mixt
     assert got.log_likelihood == pytest.approx(((torch.logsumexp(ll, 0) - math.log(2)).sum() / 8).item(), rel=1e-5)
     assert got.entropy == pytest.approx((-(q * q.log()).sum(0)).mean().item(), rel=1e-5)
     assert q[:, 2].tolist() == pytest.approx([0.5, 0.5], abs=0.01)  # the halfway episode, about log 2 of entropy
+    assert got.episodes == pytest.approx((q * (ll - math.log(2))).sum(0).tolist(), rel=1e-5)  # per episode, summed
+    assert sum(got.episodes) / sum(lengths) == pytest.approx(got.score, rel=1e-6)
+
+
+def test_paired_standard_error_of_per_step_scores():
+    # equal lengths: the standard error of the mean per-step difference, std(d) / sqrt(E) / steps
+    a, b = [1.0, 2.0, 4.0, 3.0], [0.0, 2.0, 2.0, 2.0]
+    d = torch.tensor(a) - torch.tensor(b)
+    assert paired_standard_error(a, b, [5] * 4) == pytest.approx((d.std() / 2 / 5).item(), rel=1e-6)
+    # a constant per-step gap over episodes of any length has no noise; a constant per-episode gap has
+    assert paired_standard_error([2.0, 4.0, 6.0], [0.0, 0.0, 0.0], [1, 2, 3]) == pytest.approx(0.0, abs=1e-12)
+    assert paired_standard_error([1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [1, 2, 3]) > 0.05
+    assert paired_standard_error([1.0], [0.0], [3]) == 0.0
+    with pytest.raises(ValueError, match="a score per episode"):
+        paired_standard_error([1.0, 2.0], [0.0], [1, 1])
 
 
 def test_search_finds_two_modes_with_constructed_fits_and_splits_by_seed(capsys):
@@ -132,6 +148,11 @@ def test_search_finds_two_modes_with_constructed_fits_and_splits_by_seed(capsys)
     assert choice.entropies[4] == pytest.approx(math.log(2), abs=1e-6)
     err = capsys.readouterr().err
     assert err.count("pomil: num_codes auto: K ") == 4 and "pomil: num_codes auto: chose K 2 (" in err
+    assert "below the best K 2: K 1 " in err and "standard error over the held-out episodes" in err
+    assert choice.episode_steps == (5,) * 8 and sorted(choice.episode_scores) == [1, 2, 3, 4]
+    assert all(len(v) == 8 for v in choice.episode_scores.values())
+    assert sum(choice.episode_scores[2]) / 40 == pytest.approx(choice.scores[2], rel=1e-6)
+    assert NumCodesChoice.from_record(json.loads(json.dumps(choice.record()))) == choice  # per episode in config.json
     train, held = heldout_split(40, seed=3)
     assert len(held) == 8 and sorted(train.tolist() + held.tolist()) == list(range(40))
     assert torch.equal(heldout_split(40, seed=3)[1], held) and not torch.equal(heldout_split(40, seed=4)[1], held)

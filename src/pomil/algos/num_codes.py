@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass
-from typing import Any, Callable, Mapping, NamedTuple
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import torch
 
@@ -67,6 +67,9 @@ class HeldoutScore(NamedTuple):
     """Mixture log-likelihood per step (:func:`mixture_log_likelihood`)."""
     entropy: float
     """Mean entropy of an episode's posterior over the codes, nats per episode."""
+    episodes: tuple[float, ...]
+    """Each episode's classification log-likelihood (nats, summed over its steps): ``score`` is their
+    sum over all the episodes' steps."""
 
 
 def heldout_score(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> HeldoutScore:
@@ -74,8 +77,25 @@ def heldout_score(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: to
     classification log-likelihood / their steps."""
     ll = episode_log_likelihoods(policy, data, prev_actions)
     steps = data.mask.sum().item()
-    return HeldoutScore(classification_log_likelihood(ll).sum().item() / steps,
-                        mixture_log_likelihood(ll).sum().item() / steps, code_posterior_entropy(ll).mean().item())
+    per_episode = classification_log_likelihood(ll)
+    return HeldoutScore(per_episode.sum().item() / steps, mixture_log_likelihood(ll).sum().item() / steps,
+                        code_posterior_entropy(ll).mean().item(), tuple(per_episode.tolist()))
+
+
+def paired_standard_error(a: Sequence[float], b: Sequence[float], steps: Sequence[int]) -> float:
+    """The standard error (nats per step) of the difference of two per-step scores over the same
+    held-out episodes, sum(a) / sum(steps) - sum(b) / sum(steps), from the episodes' paired
+    differences a_e - b_e (a ratio estimator's: episodes of unequal length weigh by their steps);
+    0 for fewer than two episodes."""
+    if not len(a) == len(b) == len(steps):
+        raise ValueError(f"needs a score per episode on both sides and steps per episode, got {len(a)}, {len(b)}, "
+                         f"{len(steps)}")
+    d = torch.tensor(a, dtype=torch.float64) - torch.tensor(b, dtype=torch.float64)
+    n = torch.tensor(steps, dtype=torch.float64)
+    if d.numel() < 2:
+        return 0.0
+    residual = d - n * d.sum() / n.sum()
+    return (residual.std() * math.sqrt(d.numel()) / n.sum()).item()
 
 
 def choose_num_codes(scores: Mapping[int, float], tolerance: float, min_gain: float) -> int:
@@ -114,6 +134,11 @@ class NumCodesChoice:
     """Held-out classification log-likelihood per step (:func:`heldout_score`), by K."""
     entropies: dict[int, float]
     """Mean entropy of a held-out episode's posterior over the codes (nats), by K."""
+    episode_scores: dict[int, tuple[float, ...]] = field(default_factory=dict)
+    """Each held-out episode's classification log-likelihood (nats), by K: the evidence for the
+    scores' noise over episodes (:func:`paired_standard_error`); empty in records written before it."""
+    episode_steps: tuple[int, ...] = ()
+    """Each held-out episode's steps, in the order of ``episode_scores``."""
 
     @property
     def trained(self) -> int:
@@ -123,7 +148,10 @@ class NumCodesChoice:
     def record(self) -> dict[str, Any]:
         return {"num_codes_chosen": self.chosen, "num_codes_trained": self.trained,
                 "num_codes_evidence": {str(k): v for k, v in self.scores.items()},
-                "num_codes_code_entropy": {str(k): v for k, v in self.entropies.items()}}
+                "num_codes_code_entropy": {str(k): v for k, v in self.entropies.items()},
+                **({"num_codes_heldout_episodes": {"steps": list(self.episode_steps),
+                                                   **{str(k): list(v) for k, v in self.episode_scores.items()}}}
+                   if self.episode_scores else {})}
 
     @classmethod
     def from_record(cls, record: Any) -> "NumCodesChoice":
@@ -137,7 +165,12 @@ class NumCodesChoice:
         scores = {int(k): float(v) for k, v in evidence.items()}
         if chosen not in scores:
             raise ValueError("the chosen number of codes has no score")
-        return cls(chosen, scores, {int(k): float(v) for k, v in entropy.items()})
+        episodes = record.get("num_codes_heldout_episodes") or {}
+        if not isinstance(episodes, dict) or not isinstance(episodes.get("steps", []), list):
+            raise ValueError("damaged held-out episode scores")
+        return cls(chosen, scores, {int(k): float(v) for k, v in entropy.items()},
+                   {int(k): tuple(float(x) for x in v) for k, v in episodes.items() if k != "steps"},
+                   tuple(int(n) for n in episodes.get("steps", [])))
 
     def stats(self) -> dict[str, float]:
         """Row 0 of the run's log."""
@@ -158,15 +191,22 @@ def search_num_codes(fit: Callable[[int, PaddedEpisodes, torch.Tensor], Gaussian
     train_prev, held_prev = prev_actions[:, train.to(data.mask.device)], prev_actions[:, held.to(data.mask.device)]
     scores: dict[int, float] = {}
     entropies: dict[int, float] = {}
+    per_episode: dict[int, tuple[float, ...]] = {}
     for k in range(1, min(max_codes, len(train)) + 1):
         s = heldout_score(fit(k, train_data, train_prev), held_data, held_prev)
-        scores[k], entropies[k] = s.score, s.entropy
+        scores[k], entropies[k], per_episode[k] = s.score, s.entropy, s.episodes
         print(f"pomil: num_codes auto: K {k}: held-out score {s.score:.4f} per step (gain over K 1: "
               f"{s.score - scores[1]:+.4f}): mixture log-likelihood {s.log_likelihood:.4f} per step less the codes' "
               f"posterior entropy, {s.entropy:.3f} nats per episode ({len(train)} training, {len(held)} held-out "
               "episodes)", file=sys.stderr)
-    choice = NumCodesChoice(choose_num_codes(scores, tolerance, min_gain), scores, entropies)
+    steps = tuple(int(n) for n in held_data.mask.sum(0).tolist())
+    choice = NumCodesChoice(choose_num_codes(scores, tolerance, min_gain), scores, entropies, per_episode, steps)
     best = max(scores, key=lambda k: (scores[k], -k))
+    if best != 1:  # how far each smaller K sits below the best, against the held-out episodes' noise
+        se = {k: paired_standard_error(per_episode[best], per_episode[k], steps) for k in range(1, best)}
+        print(f"pomil: num_codes auto: below the best K {best}: "
+              + ", ".join(f"K {k} {scores[best] - scores[k]:.4f} ± {se[k]:.4f}" for k in se)
+              + " nats per step (± the standard error over the held-out episodes, paired)", file=sys.stderr)
     why = ("no K scores above K 1" if best == 1 else
            f"the best K {best} gains {scores[best] - scores[1]:.4f} nats per step over K 1, at most "
            f"num_codes_min_gain {min_gain:g}" if choice.chosen == 1 else
