@@ -76,7 +76,7 @@ def table(task: str, results: dict[str, Any]) -> str:
     lines = [f"{task}: " + f"{'encoder':10s}" + "".join(f"{c:>24s}" for c in cols)]
     for encoder, r in results.items():
         cells = "".join(f"{r['summary'][c][0]:>15.2f} ± {r['summary'][c][1]:<6.2f}" for c in cols)
-        lines.append(" " * (len(task) + 2) + f"{encoder:10s}{cells}")
+        lines.append(" " * (len(task) + 2) + f"{encoder:10s}{cells}  ({len(r['runs'])} seeds)")
     return "\n".join(lines)
 
 
@@ -110,6 +110,9 @@ def main() -> None:
         done = {(task, encoder, r["seed"]): r for task, per in earlier.get("tasks", {}).items()
                 for encoder, e in per.items() for r in e.get("runs", [])}
         print(f"--resume: {len(done)} run(s) from {args.out} kept", flush=True)
+        for task, per in earlier.get("tasks", {}).items():  # encoders and tasks not run now stay in the file
+            for encoder, e in per.items():
+                results["tasks"].setdefault(task, {})[encoder] = {"runs": e.get("runs", [])}
     with tempfile.TemporaryDirectory() as tmp:
         for task in tasks:
             per_encoder: dict[str, Any] = {}
@@ -124,14 +127,16 @@ def main() -> None:
                     write_json(Path(args.out), {**results, "partial": True})  # a cut-off benchmark keeps its runs
                     print(f"{task} {encoder} seed {seed}: " + ", ".join(f"{c} {row[c]:.2f}" for c in COLUMNS[task]),
                           flush=True)
-                per_encoder[encoder] = {"runs": runs, "summary": {
-                    c: [float(np.mean([r[c] for r in runs])), float(np.std([r[c] for r in runs]))]
-                    for c in COLUMNS[task]}}
-            results["tasks"][task] = per_encoder
+                per_encoder[encoder] = {"runs": runs}
+            results["tasks"][task] = {**results["tasks"].get(task, {}), **per_encoder}
+    for task, per_encoder in results["tasks"].items():
+        for r in per_encoder.values():
+            r["summary"] = {c: [float(np.mean([x[c] for x in r["runs"]])), float(np.std([x[c] for x in r["runs"]]))]
+                            for c in COLUMNS[task]}
     print()
     for task, per_encoder in results["tasks"].items():
         print(table(task, per_encoder))
-    print(f"\nmean ± std over {args.seeds} seed(s); env_steps_per_s: the run's training throughput (metrics.csv)")
+    print("\nmean ± std over each row's seeds; env_steps_per_s: the run's training throughput (metrics.csv)")
     write_json(Path(args.out), results)
     print(f"wrote {args.out}")
 
