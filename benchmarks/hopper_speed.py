@@ -16,7 +16,8 @@ Prints env-steps/s of:
    ``rollout_threads`` option (1, the default: the rollout's policy steps on one
    torch thread; 0: torch's own thread count), to show what it is worth; with
    ``--precision float32,bfloat16`` once per ``precision`` (bfloat16: the updates'
-   network passes under ``torch.autocast``);
+   network passes under ``torch.autocast``); with ``--belief-encoder gru,lstm,attention``
+   once per belief encoder (the same loop, so their throughputs compare);
 7. the peers, when the ``bench`` extra is installed (``pip install -e '.[bench]'``):
    Stable-Baselines3's PPO (MLP) and sb3-contrib's RecurrentPPO (LSTM) training on
    the same task (Hopper-v5, paper setting, positions only), ``--peer-envs`` envs in
@@ -26,7 +27,8 @@ Prints env-steps/s of:
    50%) and / each peer (at least 3x SB3 PPO), from this one run.
 
     .venv/bin/python benchmarks/hopper_speed.py [--num-envs 256] [--iterations 3] [--device cpu]
-        [--train-envs 256,1024,4096] [--rollout-threads 1,0] [--precision float32,bfloat16] [--peer-envs 8]
+        [--train-envs 256,1024,4096] [--rollout-threads 1,0] [--precision float32,bfloat16]
+        [--belief-encoder gru,lstm,attention] [--peer-envs 8]
 
 ``--train-envs`` times InfoGAIL-POMDP training once per number of parallel
 environments (for a GPU: many environments, large batches).
@@ -102,11 +104,14 @@ def main() -> None:
                     help="comma-separated rollout_threads settings for 5 (0: torch's own)")
     ap.add_argument("--precision", default="float32",
                     help="comma-separated precision settings for 5 (float32, bfloat16)")
+    ap.add_argument("--belief-encoder", default="gru",
+                    help="comma-separated belief encoders for 5 (gru, lstm, attention)")
     ap.add_argument("--peer-envs", type=int, default=8, help="environments of the SB3 peers (7; 0: skip them)")
     args = ap.parse_args()
     n = args.num_envs
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
-    settings = [(int(t), p) for t in args.rollout_threads.split(",") for p in args.precision.split(",")]
+    settings = [(int(t), p, e) for t in args.rollout_threads.split(",") for p in args.precision.split(",")
+                for e in args.belief_encoder.split(",")]
     kw = hopper_kwargs("forward", "paper")
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
     print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, "
@@ -121,17 +126,18 @@ def main() -> None:
         rows.append(("expert PPO training (64 envs, MLP)",
                      float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
         for m in train_envs:
-            for threads, precision in settings:
-                run = Path(tmp) / f"ip{m}-{threads}-{precision}"
+            for threads, precision, encoder in settings:
+                run = Path(tmp) / f"ip{m}-{threads}-{precision}-{encoder}"
                 values = {"learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
                           "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0,
                           "eval_every": 0,
                           "log_every": 1, "progress": False, "device": args.device, "num_envs": m,
-                          "rollout_threads": threads, "precision": precision}
+                          "rollout_threads": threads, "precision": precision, "belief_encoder": encoder}
                 train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
                 row = last_row(run)
-                note = (f", rollout_threads {threads}" if len({t for t, _ in settings}) > 1 else "") + (
-                    f", {precision}" if len({p for _, p in settings}) > 1 else "")
+                note = (f", rollout_threads {threads}" if len({t for t, _, _ in settings}) > 1 else "") + (
+                    f", {precision}" if len({p for _, p, _ in settings}) > 1 else "") + (
+                    f", {encoder}" if len({e for _, _, e in settings}) > 1 else "")
                 what = f"InfoGAIL-POMDP training ({m} envs, all updates{note})"
                 rows.append((what, float(row["time/env_steps_per_s"])))
                 shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
