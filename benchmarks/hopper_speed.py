@@ -135,9 +135,9 @@ def main() -> None:
                           "rollout_threads": threads, "precision": precision, "belief_encoder": encoder}
                 train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
                 row = last_row(run)
-                note = (f", rollout_threads {threads}" if len({t for t, _, _ in settings}) > 1 else "") + (
-                    f", {precision}" if len({p for _, p, _ in settings}) > 1 else "") + (
-                    f", {encoder}" if len({e for _, _, e in settings}) > 1 else "")
+                note = "".join(f", {label}{value}" for i, (label, value) in
+                               enumerate((("rollout_threads ", threads), ("", precision), ("", encoder)))
+                               if len({setting[i] for setting in settings}) > 1)  # what the rows differ in
                 what = f"InfoGAIL-POMDP training ({m} envs, all updates{note})"
                 rows.append((what, float(row["time/env_steps_per_s"])))
                 shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
