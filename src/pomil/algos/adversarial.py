@@ -143,9 +143,10 @@ class AdversarialConfig(RunConfig):
                                                    "(FAST_WARM_START: lr 3e-3 decaying to 0, the log std at 10x, "
                                                    "its maximum-likelihood fit at the end) whatever the run's own",
                                               within="[1, inf)")
-    num_codes_tolerance: float = option(0.05, "with num_codes auto: take the smallest K whose held-out score is "
-                                              "within this fraction of the gain from K 1 to the best K",
-                                        within="[0, 1)")
+    num_codes_tolerance: float = option(0.25, "with num_codes auto: a larger K is taken only when its held-out "
+                                              "score exceeds the current K's by more than this fraction of the "
+                                              "current K's average gain per code, (score_K - score_1) / (K - 1)",
+                                        within="[0, inf)")
     num_codes_min_gain: float = option(0.01, "with num_codes auto: K 1 (then trained with 2 codes) when the best K's "
                                              "held-out score is at most this many nats per step above K 1's",
                                        within="[0, inf)")
