@@ -119,16 +119,11 @@ def choose_num_codes(scores: Mapping[int, float], tolerance: float, min_gain: fl
         raise ValueError(f"scores must be given for K = 1, 2, ..., K_max; got K = {ks}")
     if not all(math.isfinite(scores[k]) for k in ks):
         raise ValueError(f"scores must be finite, got {dict(scores)}")
-    gaining = [k for k in ks if scores[k] - scores[1] > min_gain]
-    if not gaining:
-        return 1
-    k = gaining[0]
-    while True:
-        step = tolerance * average_gain_per_code(scores, k)
-        further = [j for j in ks if j > k and scores[j] - scores[k] > step]
-        if not further:
-            return k
+    k = next((j for j in ks if scores[j] - scores[1] > min_gain), 1)
+    while k > 1 and (further := [j for j in ks if j > k
+                                 and scores[j] - scores[k] > tolerance * average_gain_per_code(scores, k)]):
         k = further[0]
+    return k
 
 
 def average_gain_per_code(scores: Mapping[int, float], k: int) -> float:
