@@ -224,9 +224,10 @@ def search_num_codes(fit: Callable[[int, PaddedEpisodes, torch.Tensor], Gaussian
         print(f"pomil: num_codes auto: below the best K {best}: "
               + ", ".join(f"K {k} {scores[best] - scores[k]:.4f} ± {se[k]:.4f}" for k in se)
               + " nats per step (± the standard error over the held-out episodes, paired)", file=sys.stderr)
-    why = (f"no K scores more than num_codes_min_gain {min_gain:g} nats per step above K 1" if choice.chosen == 1 else
-           f"no larger K scores more than num_codes_tolerance {tolerance:g} x its average gain per code, "
-           f"{average_gain_per_code(scores, choice.chosen):.4f} nats per step, above it")
+    k = choice.chosen
+    why = (f"no K scores more than num_codes_min_gain {min_gain:g} nats per step above K 1" if k == 1 else
+           f"no larger K scores above K {k} by more than num_codes_tolerance {tolerance:g} x K {k}'s average gain "
+           f"per code ({average_gain_per_code(scores, k):.4f} nats per step)")
     print(f"pomil: num_codes auto: chose K {choice.chosen} ({why})"
           + (f"; training with {choice.trained} codes, since a single code carries no information"
              if choice.trained != choice.chosen else ""), file=sys.stderr)
