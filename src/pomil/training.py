@@ -429,13 +429,13 @@ class RunLogger:
     """Progress bar with the key figures, CSV rows and TensorBoard scalars.
 
     ``log(iteration, stats)`` writes one CSV row and the scalars; ``update``
-    advances the bar.  On resume the CSV keeps only rows up to the iteration
-    the checkpoint was written at, so the log reads as one continuous run.
+    advances the bar.  On resume (``start`` > 0, or ``resume``: a run resumed at iteration 0) the CSV
+    keeps only rows up to the iteration the checkpoint was written at, so the log reads as one continuous run.
     """
 
     def __init__(
         self, run_dir: str | Path, total: int, start: int = 0, progress: bool = True,
-        desc: str = "train", key_stats: tuple[str, ...] = (),
+        desc: str = "train", key_stats: tuple[str, ...] = (), resume: bool = False,
     ) -> None:
         from torch.utils.tensorboard import SummaryWriter
         from tqdm.auto import tqdm
@@ -445,7 +445,7 @@ class RunLogger:
         self.csv_path = self.run_dir / "metrics.csv"
         self.key_stats = key_stats
         self._rows: list[dict[str, Any]] = []
-        if start > 0 and self.csv_path.exists():
+        if (start > 0 or resume) and self.csv_path.exists():
             with open(self.csv_path, newline="") as f:
                 self._rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= start]
         elif self.csv_path.exists():
@@ -586,9 +586,9 @@ class RunLoop:
         added to each log row after the wall-clock ones."""
         cfg = self.config
         self.logger = logger = RunLogger(self.dir, cfg.iterations, self.iteration, cfg.progress, desc=desc,
-                                         key_stats=key_stats)
+                                         key_stats=key_stats, resume=self.resume)
         self.guard.on_stop = logger.close
-        if self.iteration == 0:
+        if self.iteration == 0 and not self.resume:  # a resumed run at 0 (a warm start alone) has its row 0
             row = dict(first_row or {})
             if evaluate is not None:
                 row.update(evaluate(self.nets["policy"]), **{"eval/env_steps": 0.0})

@@ -254,11 +254,15 @@ def test_zero_iterations_is_the_warm_start_alone_evaluated_and_saved(demos_path,
         rows = list(csv.DictReader(f))
     assert [r["iteration"] for r in rows] == ["0"] and float(rows[0]["eval/nmi"]) >= 0.0
     assert rows[0]["init/bc_nll"] != ""
-    # resuming it is nothing to do; a longer run continues from it
+    # resuming it is nothing to do; a longer run continues from it, without a second warm start: its
+    # first iteration leaves the policy as the warm start left it (policy_warmup_iterations)
     assert load_checkpoint(train_adversarial(cfg, resume=True))["iteration"] == 0
     longer = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "w", learner="infogail-pomdp", iterations=1,
                                                     bc_init_iterations=20, posterior_init_iterations=5), resume=True))
     assert longer["iteration"] == 1
+    assert all(torch.equal(longer["policy"][k], v) for k, v in ckpt["policy"].items())
+    with open(tmp_path / "w" / "metrics.csv", newline="") as f:
+        assert [r["iteration"] for r in csv.DictReader(f)] == ["0", "1"]
 
 
 def test_noisy_expert_actions_carry_the_policy_noise_and_stay_shifted(demos_path, tmp_path):

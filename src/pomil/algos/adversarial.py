@@ -810,9 +810,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
                              shift_actions(expert.actions), execute, num_codes, loop.guard,
                              episode_codes=episode_codes)
+        # A checkpoint at iteration 0 is that of a warm start alone (--iterations 0): resuming it goes on from there.
         init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
                                     episode_codes)
-                      if loop.iteration == 0 and cfg.bc_init_iterations > 0 else {})
+                      if loop.iteration == 0 and not resume and cfg.bc_init_iterations > 0 else {})
         run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
         return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
