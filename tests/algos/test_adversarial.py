@@ -263,6 +263,11 @@ def test_zero_iterations_is_the_warm_start_alone_evaluated_and_saved(demos_path,
     assert all(torch.equal(longer["policy"][k], v) for k, v in ckpt["policy"].items())
     with open(tmp_path / "w" / "metrics.csv", newline="") as f:
         assert [r["iteration"] for r in csv.DictReader(f)] == ["0", "1"]
+    straight = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "s", learner="infogail-pomdp",
+                                                      iterations=1, bc_init_iterations=20,
+                                                      posterior_init_iterations=5)))
+    for name in ("policy", "value", "critic", "posterior"):  # the same as one run straight through
+        assert all(torch.equal(straight["nets"][name][k], v) for k, v in longer["nets"][name].items()), name
 
 
 def test_noisy_expert_actions_carry_the_policy_noise_and_stay_shifted(demos_path, tmp_path):
