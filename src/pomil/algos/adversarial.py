@@ -123,8 +123,8 @@ class AdversarialConfig(RunConfig):
                 "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
                 "otherwise), default (pomil's measured recipe), paper-text (the paper's text), fast-warm-start (an "
                 "earlier fast warm start, lr 3e-3; worse on the paper's Hopper), long-warm-start (the earlier "
-                "default warm start: 3000 steps at lr 1e-3) or terminating (the policy sees "
-                "(z_t, dz_t) without a_{t-1}, and the fast-warm-start preset's warm start); config.json records the one that ran; see "
+                "default warm start: 3000 steps at lr 1e-3) or terminating (the policy sees (z_t, dz_t) without "
+                "a_{t-1}, and the fast-warm-start preset's warm start); config.json records the one that ran; see "
                 "PRESETS")
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
                              within="[0, inf)")
