@@ -287,7 +287,7 @@ def test_an_auto_run_is_the_run_of_its_k_and_resumes_without_searching(demos_pat
 
 def test_the_search_fits_on_the_fast_schedule_whatever_the_runs_warm_start(demos_path, monkeypatch, capsys):
     """Each K's fit runs num_codes_search_iterations steps of the fast warm start's schedule (decaying lr, the log
-    std at 10x and fitted at the end), not the run's own 3000-step constant-rate warm start."""
+    std at 10x and fitted at the end), not the run's own warm start."""
     import pomil.algos.adversarial as adv
     from pomil.data import Demonstrations
 
@@ -302,9 +302,9 @@ def test_the_search_fits_on_the_fast_schedule_whatever_the_runs_warm_start(demos
     for _, _, fit in seen:
         assert fit.bc_init_iterations == 7
         assert {k: getattr(fit, k) for k in adv.FAST_WARM_START if k != "bc_init_iterations"} == {
-            "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_log_std_lr_scale": 10.0,
-            "bc_init_fit_log_std": True}
-    assert cfg.bc_init_lr == 1e-4 and cfg.bc_init_iterations == 3000  # the run's own warm start is left as it was
+            "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_lr_warmup": 0.0, "bc_init_log_std_lr_scale": 10.0,
+            "bc_init_fit_log_std": True}  # the schedule it was calibrated on, whatever the defaults' warm start
+    assert cfg.bc_init_lr == 1e-4 and cfg.bc_init_iterations == 600  # the run's own warm start is left as it was
 
 
 def test_gail_ignores_auto_and_explicit_runs_record_nothing(demos_path, tmp_path, capsys):
