@@ -262,8 +262,8 @@ def test_fit_log_std_weights_each_code_by_its_responsibility():
 
 def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
     """Adam's log-std group runs at bc_init_log_std_lr_scale x bc_init_lr; the rate falls linearly
-    to 0 over the steps (the fast-warm-start preset), after a linear rise over bc_init_lr_warmup of them (the
-    defaults); long-warm-start and paper-text: 1e-3, 1x, no decay, no fit."""
+    to 0 over the steps (the fast-warm-start preset), after a linear rise over bc_init_lr_warmup of them
+    (deep-warm-start); the defaults and paper-text: 1e-3, 1x, no decay, no fit."""
     from pomil.algos.adversarial import AdversarialConfig, warm_start_optimizer
     from pomil.config import from_dict
     from pomil.nn.policy import GaussianPolicy, PolicyArch
@@ -286,12 +286,12 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
     opt.step()
     decay.step()
     assert opt.param_groups[0]["lr"] == 3e-3
-    for plain in (from_dict(AdversarialConfig, {"preset": "long-warm-start"}),
-                  from_dict(AdversarialConfig, {"preset": "paper-text"})):
+    for plain in (AdversarialConfig(), from_dict(AdversarialConfig, {"preset": "paper-text"})):
         assert (plain.bc_init_lr, plain.bc_init_lr_decay, plain.bc_init_log_std_lr_scale,
                 plain.bc_init_fit_log_std) == (1e-3, False, 1.0, False)
-    # the defaults: 10 steps, the first 2 rising to the peak, then the decay to 0 over the other 8
-    opt, schedule = warm_start_optimizer(policy, dataclasses.replace(AdversarialConfig(), bc_init_iterations=10))
+    # deep-warm-start: 10 steps, the first 2 rising to the peak, then the decay to 0 over the other 8
+    deep = from_dict(AdversarialConfig, {"preset": "deep-warm-start"})
+    opt, schedule = warm_start_optimizer(policy, dataclasses.replace(deep, bc_init_iterations=10))
     lrs = []
     for _ in range(10):
         lrs.append(opt.param_groups[0]["lr"])
