@@ -283,8 +283,8 @@ class AdversarialConfig(RunConfig):
             "lr_posterior": 2e-4, "update_mode": "window", "bc_init_codes": "random", "bc_init_iterations": 300,
             "bc_weight": 0.0, "policy_warmup_iterations": 0,
         },
-        # The earlier fast warm start: lr 3e-3 without the rise. The same fit on the demonstrations as the long
-        # one, but a worse closed-loop gait on the paper's Hopper (forward 0.86 against 0.98, 5 seeds): docs/speed.md.
+        # The warm start in a fifth of the steps (lr 3e-3, no rise): the default's fit on the demonstrations (NLL),
+        # but a worse closed-loop gait on the paper's Hopper (forward 0.86 against 0.98, 5 seeds): docs/speed.md.
         "fast-warm-start": FAST_WARM_START,
         # The deepest fit in 600 steps (NLL -8.7 against the default's -7.5 on the paper's Hopper), in 60% of a
         # Hopper run's time, but 4/5 seeds there against 5/5 (docs/method.md, "The warm start's schedule").
