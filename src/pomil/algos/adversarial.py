@@ -104,11 +104,9 @@ FAST_WARM_START: dict[str, Any] = {
 """The fast warm start's settings, lr 3e-3 without a rise (presets fast-warm-start and terminating, and every
 K's fit of the ``--num-codes auto`` search, which was calibrated on it)."""
 
-DEEP_WARM_START: dict[str, Any] = {
-    "bc_init_iterations": 600, "bc_init_lr": 1e-2, "bc_init_lr_decay": True, "bc_init_lr_warmup": 0.2,
-    "bc_init_log_std_lr_scale": 10.0, "bc_init_fit_log_std": True,
-}
-"""Preset deep-warm-start: 600 steps, the rate rising linearly to 1e-2 over the first 20% and decaying to 0."""
+DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "bc_init_lr": 1e-2, "bc_init_lr_warmup": 0.2}
+"""Preset deep-warm-start: the fast warm start with the rate rising linearly to 1e-2 over the first 20% of the
+steps, then decaying to 0."""
 
 
 @dataclass(frozen=True)
