@@ -3,12 +3,16 @@
 For each demonstrations file, learner and seed, runs ``bc_warm_start`` (the adversarial
 learners' behaviour-cloning warm start, with its posterior steps) once per recipe:
 
-* ``default``: ``AdversarialConfig``'s warm start (3000 Adam steps at lr 1e-3);
+* ``default``: ``AdversarialConfig``'s warm start (600 Adam steps, lr rising to 1e-2 over the
+  first 20%, then decaying to 0; the log std at the network's rate, not fitted);
+* ``long``: the ``long-warm-start`` preset (3000 steps at a constant lr 1e-3, the default
+  until 2026-12);
 * ``fast``: the ``fast-warm-start`` preset (600 steps, lr 3e-3 decaying to 0, the log std
   at 10x and fitted in closed form at the end);
 * ``deep``: the ``deep-warm-start`` preset (600 steps, lr rising to 1e-2 over the first 20%,
   then decaying to 0; the log std as in ``fast``);
 * ``bf16``: the default's steps with ``precision`` bfloat16 (``torch.autocast``);
+* ``long-bf16``: the ``long`` steps in bfloat16;
 * ``fast-bf16``: the ``fast`` steps in bfloat16.
 
 and prints its wall time, the policy part's time, and the demonstrations' negative
@@ -18,7 +22,7 @@ time ratio and NLL change against the first one::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/warm_start_speed.py \
         [--demos data/circles.npz,data/hopper-paper.npz] [--learners infogail-pomdp] [--seeds 0] \
-        [--recipes default,fast,deep,bf16,fast-bf16]
+        [--recipes long,default,fast,deep,bf16,long-bf16,fast-bf16]
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ from dataclasses import replace
 import torch
 
 from pomil.algos.adversarial import (
-    DEEP_WARM_START, FAST_WARM_START, AdversarialConfig, bc_warm_start, build_modules, resolve_num_codes,
+    DEEP_WARM_START, FAST_WARM_START, LONG_WARM_START, AdversarialConfig, bc_warm_start, build_modules,
+    resolve_num_codes,
 )
 from pomil.algos.bc import _nll, episode_features, mixture_bc_loss
 from pomil.data import load_training_demos
@@ -38,7 +43,8 @@ from pomil.envs import executed_actions_fn
 from pomil.nn.policy import shift_actions
 from pomil.training import precision_context
 
-RECIPES = {"default": {}, "fast": FAST_WARM_START, "deep": DEEP_WARM_START, "bf16": {"precision": "bfloat16"},
+RECIPES = {"default": {}, "long": LONG_WARM_START, "fast": FAST_WARM_START, "deep": DEEP_WARM_START,
+           "bf16": {"precision": "bfloat16"}, "long-bf16": {**LONG_WARM_START, "precision": "bfloat16"},
            "fast-bf16": {**FAST_WARM_START, "precision": "bfloat16"}}
 
 

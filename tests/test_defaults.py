@@ -22,14 +22,18 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     cfg = AdversarialConfig()
     assert (cfg.critic_optimizer, cfg.gradient_penalty, cfg.weight_clip, cfg.lr_critic) == ("adam", 10.0, 0.0, 5e-4)
     assert (cfg.bc_init_codes, cfg.bc_init_iterations, cfg.bc_weight, cfg.lr, cfg.policy_warmup_iterations) == (
-        "mixture", 3000, 10.0, 5e-5, 5)
+        "mixture", 600, 10.0, 5e-5, 5)
     assert (cfg.bc_init_lr, cfg.bc_init_lr_decay, cfg.bc_init_lr_warmup, cfg.bc_init_log_std_lr_scale,
-            cfg.bc_init_fit_log_std) == (1e-3, False, 0.0, 1.0, False)
-    # the warm starts of the presets, whole: only deep-warm-start rises
-    for name, steps, lr, rise in (("deep-warm-start", 600, 1e-2, 0.2), ("fast-warm-start", 600, 3e-3, 0.0),
-                                  ("terminating", 600, 3e-3, 0.0), ("paper-text", 300, 1e-3, 0.0)):
+            cfg.bc_init_fit_log_std) == (1e-2, True, 0.2, 1.0, False)
+    # the warm starts of the presets, whole (steps, peak lr, decay, rise, log std's scale, its fit)
+    for name, warm_start in (("deep-warm-start", (600, 1e-2, True, 0.2, 10.0, True)),
+                             ("fast-warm-start", (600, 3e-3, True, 0.0, 10.0, True)),
+                             ("terminating", (600, 3e-3, True, 0.0, 10.0, True)),
+                             ("long-warm-start", (3000, 1e-3, False, 0.0, 1.0, False)),
+                             ("paper-text", (300, 1e-3, False, 0.0, 1.0, False))):
         p = from_dict(AdversarialConfig, {"preset": name})
-        assert (p.bc_init_iterations, p.bc_init_lr, p.bc_init_lr_warmup) == (steps, lr, rise), name
+        assert (p.bc_init_iterations, p.bc_init_lr, p.bc_init_lr_decay, p.bc_init_lr_warmup,
+                p.bc_init_log_std_lr_scale, p.bc_init_fit_log_std) == warm_start, name
     assert cfg.mixture_balance == "dataset"
     assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "auto")
     # a reproduction adds only the run's own fields to the defaults (auto: the circles' default preset)
@@ -51,7 +55,7 @@ def test_paper_text_preset_gives_the_texts_settings_and_flags_override_it():
                                                                                          preset="default")
     with pytest.raises(PomilError,
                        match="config key 'preset': expected one of \\['auto', 'default', 'paper-text', "
-                             "'fast-warm-start', 'deep-warm-start', 'terminating'\\], got 'paper'"):
+                             "'long-warm-start', 'fast-warm-start', 'deep-warm-start', 'terminating'\\], got 'paper'"):
         from_dict(AdversarialConfig, {"preset": "paper"})
 
 
@@ -102,8 +106,7 @@ def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(
                                          "bc_init_iterations": 100})
     assert (mine.preset, mine.policy_obs_delta, mine.policy_prev_action, mine.bc_init_iterations) == (
         "terminating", True, True, 100)
-    assert from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"}).bc_init_iterations \
-        == 3000
+    assert from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"}).bc_init_lr == 1e-2
     # the run's env_kwargs decide, as they decide the environment: paper's demonstrations made to end on a fall
     ended = from_dict(AdversarialConfig, {"demos": paper, "env_kwargs": ["terminate_when_unhealthy=true"]})
     assert ended.preset == "terminating"

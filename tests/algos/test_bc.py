@@ -263,7 +263,8 @@ def test_fit_log_std_weights_each_code_by_its_responsibility():
 def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
     """Adam's log-std group runs at bc_init_log_std_lr_scale x bc_init_lr; the rate falls linearly
     to 0 over the steps (the fast-warm-start preset), after a linear rise over bc_init_lr_warmup of them
-    (deep-warm-start); the defaults and paper-text: 1e-3, 1x, no decay, no fit."""
+    (deep-warm-start and the defaults, whose log std runs at 1x and is not fitted); paper-text: 1e-3, 1x, no
+    decay, no fit."""
     from pomil.algos.adversarial import AdversarialConfig, warm_start_optimizer
     from pomil.config import from_dict
     from pomil.nn.policy import GaussianPolicy, PolicyArch
@@ -286,7 +287,8 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
     opt.step()
     decay.step()
     assert opt.param_groups[0]["lr"] == 3e-3
-    for plain in (AdversarialConfig(), from_dict(AdversarialConfig, {"preset": "paper-text"})):
+    for plain in (from_dict(AdversarialConfig, {"preset": "paper-text"}),
+                  from_dict(AdversarialConfig, {"preset": "long-warm-start"})):
         assert (plain.bc_init_lr, plain.bc_init_lr_decay, plain.bc_init_log_std_lr_scale,
                 plain.bc_init_fit_log_std) == (1e-3, False, 1.0, False)
     # deep-warm-start: 10 steps, the first 2 rising to the peak, then the decay to 0 over the other 8
@@ -299,3 +301,12 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
         opt.step()
         schedule.step()
     assert lrs == pytest.approx([5e-3, 1e-2, 1e-2, 8.75e-3, 7.5e-3, 6.25e-3, 5e-3, 3.75e-3, 2.5e-3, 1.25e-3])
+    # the defaults: the same schedule, the log std's group at the network's rate
+    opt, schedule = warm_start_optimizer(policy, dataclasses.replace(AdversarialConfig(), bc_init_iterations=10))
+    default_lrs = []
+    for _ in range(10):
+        default_lrs.append(opt.param_groups[0]["lr"])
+        assert opt.param_groups[1]["lr"] == pytest.approx(default_lrs[-1])  # the log std at 1x
+        opt.step()
+        schedule.step()
+    assert default_lrs == pytest.approx(lrs)

@@ -304,7 +304,7 @@ def test_the_search_fits_on_the_fast_schedule_whatever_the_runs_warm_start(demos
         assert {k: getattr(fit, k) for k in adv.FAST_WARM_START if k != "bc_init_iterations"} == {
             "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_lr_warmup": 0.0, "bc_init_log_std_lr_scale": 10.0,
             "bc_init_fit_log_std": True}  # the schedule it was calibrated on, whatever the defaults' warm start
-    assert cfg.bc_init_lr == 1e-4 and cfg.bc_init_iterations == 3000  # the run's own warm start is left as it was
+    assert cfg.bc_init_lr == 1e-4 and cfg.bc_init_iterations == 600  # the run's own warm start is left as it was
 
 
 def test_gail_ignores_auto_and_explicit_runs_record_nothing(demos_path, tmp_path, capsys):
