@@ -124,7 +124,7 @@ def test_warm_start_is_guarded(demos_path, tmp_path, monkeypatch):
     with pytest.raises(DivergenceError) as err:
         train_adversarial(_adv(demos_path, tmp_path / "w", bc_init_iterations=5))
     assert str(err.value) == ("warm-start step 3: warm-start loss (negative log-likelihood) is nan (the run diverged); "
-                              "try a lower --bc-init-lr (now 0.001); no checkpoint of this run was written: "
+                              "try a lower --bc-init-lr (now 0.01); no checkpoint of this run was written: "
                               "start it again with a lower --bc-init-lr")
     assert not (tmp_path / "w" / "checkpoint.pt").exists()
 
