@@ -295,7 +295,7 @@ class AdversarialConfig(RunConfig):
             "policy_warmup_iterations": 0,
         },
         # The default warm start before 2026-12 (3000 steps at a constant 1e-3): the committed results measured with
-        # it (results/circles-modes, results/hopper-ablations, ...) are re-run with this preset.
+        # it (results/hopper-long-warm-start, results/circles-ablations, results/halfcheetah, ...) re-run with it.
         "long-warm-start": LONG_WARM_START,
         # 600 steps at lr 3e-3 without a rise, the log std at 10x and fitted: the long warm start's fit on the
         # demonstrations (NLL), but a worse closed-loop gait on the paper's Hopper (forward 0.86 against 0.98, 5 seeds).
