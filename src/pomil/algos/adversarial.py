@@ -89,8 +89,8 @@ LEARNER_KINDS = {  # what each learner is made of (recurrent: belief encoders of
 #   then decays to 0: it fits the demonstrations deeper (paper's Hopper NLL -8.3 to -8.7
 #   per step) than the former default of 3000 steps at a constant 1e-3 (-7.5) in a fifth
 #   of the steps.  Over 5 seeds on the paper's Hopper 5/5 (forward 0.97, backward 1.00;
-#   the 3000 steps: 0.98 / 1.00, 5/5, 701 s per seed against 450); two circles 10/10,
-#   three to six circles 3/3 each (docs/method.md, "The warm start's schedule").  Without
+#   the 3000 steps: 0.98 / 1.00, 5/5, 701 s per seed against 392); two to six circles
+#   10/10 each (docs/method.md, "The warm start's schedule").  Without
 #   the rise (lr 1e-2 from the first step) two of five held-out circles shared a code; the
 #   log std at 10x the rate and fitted at the end (preset deep-warm-start) lost one of five
 #   Hopper seeds' backward gait (0.77); at lr 3e-3 without a rise (preset fast-warm-start)
