@@ -58,20 +58,21 @@ def test_sweep_bad_config_is_one_line(tmp_path, content, grid, text):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.json"]
 
 
-def test_reproduce_on_ray_gives_the_sequential_results(tmp_path, demos_path):
-    """Seeds in parallel on a local Ray, relative paths included: the same numbers as one after another."""
+def test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_results(tmp_path, demos_path):
+    """Seeds in parallel on a local Ray, relative paths included: the same numbers as one after another,
+    and to the last digit those of the local worker processes (one torch thread each, like Ray's)."""
     import shutil
 
     shutil.copy(demos_path, tmp_path / "d.npz")
     args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 20, "--episodes-per-code", 10,
             "--learners", "bc-mlp",
             "--demos", "d.npz", "--no-progress")
-    r = pomil(*args, "--out", "seq", "--runs", "runs-seq", cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    r = pomil(*args, "--ray", "--out", "par", "--runs", "runs-par", cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    seq = json.loads((tmp_path / "seq" / "metrics.json").read_text())["learners"]["bc-mlp"]["runs"]
-    par = json.loads((tmp_path / "par" / "metrics.json").read_text())["learners"]["bc-mlp"]["runs"]
+    for flags, name in ((("--jobs", 1), "seq"), (("--jobs", 2), "local"), (("--ray",), "par")):
+        r = pomil(*args, *flags, "--out", name, "--runs", f"runs-{name}", cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+    seq, local, par = (json.loads((tmp_path / name / "metrics.json").read_text())["learners"]["bc-mlp"]["runs"]
+                       for name in ("seq", "local", "par"))
+    assert [(a["per_code"], a["mean_return"]) for a in local] == [(b["per_code"], b["mean_return"]) for b in par]
     for a, b in zip(seq, par):
         assert a["per_code"] == b["per_code"] and a["nmi"] == b["nmi"]
         assert a["mean_return"] == pytest.approx(b["mean_return"], rel=1e-5)  # 1 vs 2 torch threads: last-digit sums
@@ -132,3 +133,23 @@ def test_sweep_of_continuous_codes_reports_the_code_radius_correlation(tmp_path)
         assert s["kind"] == "code-radius" and s["seeds"] == 1 and 0 <= s["abs_spearman"][0] <= 1
     assert data["runs"]["code_prior=gaussian seed 0"]["metrics"]["code_prior"] == "gaussian"
     assert "| code_prior=uniform | 1 |" in (out / "table.md").read_text()
+
+
+def test_run_jobs_on_ray_starts_the_costliest_first_and_keeps_job_order():
+    """Longest processing time first: with one CPU the jobs run in descending cost; results stay in job order."""
+    import time
+
+    import ray
+
+    from pomil.parallel import run_jobs
+
+    ray.init(num_cpus=1, include_dashboard=False, logging_level="ERROR")
+    try:
+        costs = [0.05, 1.0, 0.4, 0.55]
+        results = run_jobs(lambda i: (i, time.time(), time.sleep(0.2))[:2], [(i,) for i in range(4)],
+                           [f"job {i}" for i in range(4)], ray=True, costs=costs)
+    finally:
+        ray.shutdown()
+    assert [r.value[0] for r in results] == [0, 1, 2, 3] and [r.name for r in results] == [f"job {i}" for i in range(4)]
+    started = sorted(range(4), key=lambda i: results[i].value[1])
+    assert started == [1, 3, 2, 0]

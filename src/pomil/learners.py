@@ -25,7 +25,9 @@ class Learner:
     ``module`` holds ``config`` (the config class) and ``train`` (the function
     ``train(cfg, resume=False) -> checkpoint path``); both are imported on first
     use, so that reading the table costs no torch import.  ``fixed``: config
-    values the learner's name sets (not flags of its subcommand)."""
+    values the learner's name sets (not flags of its subcommand).  ``cost``: one
+    run's rough wall time relative to InfoGAIL-POMDP's, measured on circles and
+    Hopper; runs on Ray start the costliest first (:func:`pomil.parallel.run_jobs`)."""
 
     name: str
     help: str
@@ -34,6 +36,7 @@ class Learner:
     train_name: str
     fixed: dict[str, Any] = field(default_factory=dict)
     command: bool = True  # a ``pomil train`` subcommand (bc-mlp / bc-gru are bc with --policy)
+    cost: float = 1.0
 
     @property
     def config(self) -> type:
@@ -50,30 +53,31 @@ class Learner:
         return from_dict(self.config, {**values, **self.fixed}, source=source)
 
 
-def _adversarial(name: str, text: str) -> Learner:
-    return Learner(name, text, "pomil.algos.adversarial", "AdversarialConfig", "train_adversarial", {"learner": name})
+def _adversarial(name: str, text: str, cost: float) -> Learner:
+    return Learner(name, text, "pomil.algos.adversarial", "AdversarialConfig", "train_adversarial", {"learner": name},
+                   cost=cost)
 
 
-def _ablation(name: str, text: str, **fixed: Any) -> Learner:
+def _ablation(name: str, text: str, cost: float = 1.0, **fixed: Any) -> Learner:
     """InfoGAIL-POMDP with one part taken away (``pomil reproduce`` and ``pomil sweep`` only)."""
     return Learner(name, text, "pomil.algos.adversarial", "AdversarialConfig", "train_adversarial",
-                   {"learner": "infogail-pomdp", **fixed}, command=False)
+                   {"learner": "infogail-pomdp", **fixed}, command=False, cost=cost)
 
 
-def _bc(name: str, text: str, **fixed: Any) -> Learner:
-    return Learner(name, text, "pomil.algos.bc", "BCConfig", "train_bc", fixed, command=not fixed)
+def _bc(name: str, text: str, cost: float, **fixed: Any) -> Learner:
+    return Learner(name, text, "pomil.algos.bc", "BCConfig", "train_bc", fixed, command=not fixed, cost=cost)
 
 
 LEARNERS: dict[str, Learner] = {learner.name: learner for learner in (
-    _bc("bc", "behaviour cloning (feed-forward, GRU, LSTM or attention policy)"),
-    _bc("bc-mlp", "behaviour cloning with a feed-forward policy (current observation only)", policy="mlp"),
-    _bc("bc-gru", "behaviour cloning with a GRU policy (belief over the history)", policy="gru"),
-    _adversarial("gail", "GAIL: MLP networks, no codes, GAN discriminator"),
-    _adversarial("infogail", "InfoGAIL: MLP networks, latent codes, Wasserstein critic"),
+    _bc("bc", "behaviour cloning (feed-forward, GRU, LSTM or attention policy)", 0.15),
+    _bc("bc-mlp", "behaviour cloning with a feed-forward policy (current observation only)", 0.05, policy="mlp"),
+    _bc("bc-gru", "behaviour cloning with a GRU policy (belief over the history)", 0.15, policy="gru"),
+    _adversarial("gail", "GAIL: MLP networks, no codes, GAN discriminator", 0.4),
+    _adversarial("infogail", "InfoGAIL: MLP networks, latent codes, Wasserstein critic", 0.55),
     _adversarial("infogail-pomdp", "InfoGAIL-POMDP (the paper's method): separate GRU belief encoders, codes, "
-                                   "Wasserstein critic"),
+                                   "Wasserstein critic", 1.0),
     _ablation("igp-warm-start", "ablation: InfoGAIL-POMDP's mixture warm start alone (no adversarial iteration)",
-              iterations=0),
+              0.3, iterations=0),
     _ablation("igp-no-mi", "ablation: InfoGAIL-POMDP without the mutual-information reward (lambda1 = 0)",
               mi_weight=0.0),
     _ablation("igp-shared-belief", "ablation: one GRU belief shared by policy, value, critic and posterior",

@@ -53,8 +53,10 @@ from pomil.training import write_json
 
 @dataclass(frozen=True)
 class RayOptions:
-    """Where a reproduction's (learner, seed) runs go: one after another, or in parallel on Ray."""
+    """Where a reproduction's (learner, seed) runs go: in local worker processes, one after another, or on Ray."""
 
+    jobs: int = option(0, "without --ray: runs at a time, each in its own process on one torch thread (0: one per "
+                          "usable CPU core; 1: one after another in this process on every core)", within="[0, inf)")
     ray: bool = option(False, "run the (learner, seed) runs in parallel on Ray (optional extra; 1 CPU each)")
     ray_address: str = option("", "with --ray: address of an existing Ray cluster (default: a local Ray started here)")
 
@@ -255,10 +257,14 @@ def _circles_job(cfg: CirclesReproConfig, name: str, seed: int) -> dict[str, Any
 
 def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable,
              names: tuple[str, ...] | None = None) -> dict[tuple[str, int], dict[str, Any]]:
-    """Every (name, seed) of a reproduction, in order or on Ray; the first failure stops it.
+    """Every (name, seed) of a reproduction, ``cfg.jobs`` at a time or on Ray; the first failure stops it.
     ``names``: the learners (default) or, for circles-modes, the cases."""
-    from pomil.parallel import run_jobs
+    from pomil.parallel import run_jobs, usable_cpus
 
+    keys = [(name, seed) for name in (names or cfg.learners) for seed in seed_list(cfg)]
+    workers = 1 if cfg.ray else min(cfg.jobs or usable_cpus(), len(keys))
+    if workers > 1:  # bars of runs side by side would overwrite each other: a line per finished run instead
+        cfg = dataclasses.replace(cfg, progress=False)
     if cfg.ray:  # workers may start elsewhere: every path absolute
         where = cfg.path if hasattr(cfg, "path") else (lambda k: getattr(cfg, k))  # Hopper's defaults live in path()
         absolute = {k: str(Path(where(k)).resolve()) for k in ("out", "runs", "demos") if hasattr(cfg, k)}
@@ -266,9 +272,10 @@ def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable,
             if getattr(cfg, k, ""):
                 absolute[k] = str(Path(getattr(cfg, k)).resolve())
         cfg = dataclasses.replace(cfg, progress=False, **absolute)
-    keys = [(name, seed) for name in (names or cfg.learners) for seed in seed_list(cfg)]
+    costs = None if names else [LEARNERS[name].cost for name, _ in keys]  # the cases of circles-modes cost alike
     results = run_jobs(job, [(cfg, name, seed) for name, seed in keys], [f"[{n}] seed {s}" for n, s in keys],
-                       ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report)
+                       ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report,
+                       costs=costs, workers=workers)
     return {key: r.value for key, r in zip(keys, results)}
 
 
@@ -734,7 +741,7 @@ def write_task_results(out: Path, results: dict[str, Any]) -> None:
 
 # Settings that may differ between the reproductions `merge_task_results` joins: where the files
 # were, and the name of a preset whose values the other settings record in full.
-MERGE_FREE = {"config": ("out", "runs", "demos", "seeds", "first_seed", "ray", "ray_address", "progress",
+MERGE_FREE = {"config": ("out", "runs", "demos", "seeds", "first_seed", "jobs", "ray", "ray_address", "progress",
                          "adversarial_config", "bc_config", "resume_runs"),
               "adversarial_settings": ("demos", "preset"), "bc_settings": ("demos", "preset")}
 

@@ -40,7 +40,11 @@ class SweepConfig:
                       "sweep directory: one folder per setting and seed, sweep.json, table.md, figure.png")
     seeds: int = option(3, "training seeds per setting (0 .. seeds-1)", within="[1, inf)")
     ray: bool = option(True,
-                       "run on Ray (a local Ray started in-process unless --address); --no-ray: one after another")
+                       "run on Ray (a local Ray started in-process unless --address); --no-ray: --jobs at a time "
+                       "in local worker processes")
+    jobs: int = option(0, "with --no-ray: runs at a time, each in its own process on cpus_per_run torch threads (0: "
+                          "one per cpus_per_run usable CPU cores; 1: one after another in this process)",
+                       within="[0, inf)")
     address: str = option("", "address of an existing Ray cluster (paths must be on storage every node sees)")
     cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)", within="(0, inf)")
     episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run",
@@ -112,7 +116,7 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
 
 
 def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[str, Any]:
-    from pomil.parallel import run_jobs
+    from pomil.parallel import run_jobs, usable_cpus
 
     base = load_config_file(config_path)
     learner = str(base.pop("learner", "infogail-pomdp"))
@@ -140,17 +144,18 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
                 continue
             jobs.append((learner, {**base, **s}, str(run_dir), seed, cfg.episodes_per_code))
             names.append(name)
+    workers = 1 if cfg.ray else max(1, min(cfg.jobs or int(usable_cpus() // cfg.cpus_per_run), len(jobs)))
+    where = ("on Ray" + (f" at {cfg.address}" if cfg.address else " (local)") if cfg.ray else
+             f"{workers} at a time in local worker processes" if workers > 1 else "one after another")
     print(f"sweep: {len(settings)} setting(s) x {cfg.seeds} seed(s) = {len(settings) * cfg.seeds} runs; "
-          f"{len(finished)} finished before, skipped; {len(jobs)} to run "
-          f"{'on Ray' + (f' at {cfg.address}' if cfg.address else ' (local)') if cfg.ray else 'one after another'}",
-          flush=True)
+          f"{len(finished)} finished before, skipped; {len(jobs)} to run {where}", flush=True)
 
     def report(r, n, total) -> None:
         state = f"done in {r.wall_s:.0f} s" if r.ok else f"FAILED: {r.error}"
         print(f"[{n}/{total}] {r.name}: {state}", flush=True)
 
     results = run_jobs(run_one, jobs, names, ray=cfg.ray, address=cfg.address or None,
-                       cpus_per_job=cfg.cpus_per_run, on_done=report) if jobs else []
+                       cpus_per_job=cfg.cpus_per_run, on_done=report, workers=workers) if jobs else []
     runs = {**{n: {"status": "skipped (finished before)", **r} for n, r in finished.items()},
             **{r.name: ({"status": "done", **r.value} if r.ok else {"status": "failed", "error": r.error,
                                                                     "details": r.details[-4000:]})

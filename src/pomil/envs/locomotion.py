@@ -38,6 +38,8 @@ import numpy as np
 from gymnasium.envs.mujoco.hopper_v5 import HopperEnv
 from gymnasium.utils.seeding import np_random
 
+from pomil.parallel import usable_cpus
+
 HOPPER_ID = "Hopper-v5"
 HOPPER_SPEED_ID = "pomil/HopperSpeed-v0"
 REWARD_KEYWORDS = ("target_velocity",)
@@ -198,14 +200,6 @@ def _model_path() -> str:
     import gymnasium.envs.mujoco as gm
 
     return os.path.join(os.path.dirname(gm.__file__), "assets", "hopper.xml")
-
-
-def usable_cpus() -> int:
-    """CPU cores this process may run on (its affinity mask where the OS has one, e.g. under taskset)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # macOS, Windows
-        return os.cpu_count() or 1
 
 
 class HopperSim:
