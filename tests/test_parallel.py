@@ -55,6 +55,18 @@ def test_local_workers_report_a_failed_job_or_raise_its_error():
         run_jobs(_fail_on_two, [(i,) for i in range(4)], list("abcd"), workers=2, capture_errors=False)
 
 
+def _die(i: int) -> int:
+    if i == 1:
+        os._exit(3)  # a worker killed (out of memory, a signal): no exception to send back
+    time.sleep(0.2)
+    return i
+
+
+def test_a_worker_that_dies_stops_the_jobs_with_one_line():
+    with pytest.raises(PomilError, match=r"^a worker process died .*unfinished: .*\bb\b"):
+        run_jobs(_die, [(i,) for i in range(3)], list("abc"), workers=2)
+
+
 def test_one_worker_runs_in_this_process():
     results = run_jobs(_probe, [(0,), (1,)], ["a", "b"], workers=1)
     assert [r.value[1] for r in results] == [os.getpid()] * 2

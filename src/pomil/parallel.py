@@ -171,8 +171,10 @@ def _run_local(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[st
                 try:
                     value, wall = future.result()
                     finish(i, JobResult(names[i], value, wall_s=wall))
-                except BrokenProcessPool as err:  # a worker died (out of memory, killed)
-                    raise PomilError(f"{names[i]}: its worker process died ({_one_line(err)})") from None
+                except BrokenProcessPool:  # a worker died (out of memory, killed): every unfinished job with it
+                    unfinished = [names[j] for j in sorted([i, *pending.values()])]
+                    raise PomilError(f"a worker process died (out of memory or killed?); {len(unfinished)} run(s) "
+                                     f"unfinished: {', '.join(unfinished)}") from None
                 except Exception as err:
                     if not capture_errors:
                         raise

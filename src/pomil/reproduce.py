@@ -216,8 +216,8 @@ def reproduce_circles(cfg: CirclesReproConfig) -> dict[str, Any]:
 
     def report(r, n, total) -> None:
         m = r.value["metrics"]
-        print(f"[{n}/{total}] {r.name}: purity {m['mean_purity']:.2f}, modes covered {m['modes_covered']}, "
-              f"NMI {m['nmi']:.2f}, none {m['overall_none_share']:.2f} ({r.wall_s:.0f} s)", flush=True)
+        _say(f"[{n}/{total}] {r.name}: purity {m['mean_purity']:.2f}, modes covered {m['modes_covered']}, "
+            f"NMI {m['nmi']:.2f}, none {m['overall_none_share']:.2f} ({r.wall_s:.0f} s)")
 
     done = _run_all(cfg, _circles_job, report)
     for name in cfg.learners:
@@ -246,13 +246,19 @@ def write_results(out: Path, results: dict[str, Any], table: str, rollouts: dict
 
 
 def _circles_job(cfg: CirclesReproConfig, name: str, seed: int) -> dict[str, Any]:
-    print(f"[{name}] seed {seed}: training", flush=True)
+    _say(f"[{name}] seed {seed}: training")
     t0 = time.perf_counter()
     ckpt = train_learner(cfg, name, seed, Path(cfg.runs) / name / f"seed{seed}")
     wall = time.perf_counter() - t0
     metrics, roll = evaluate_circles(TrainedPolicy.load(ckpt), cfg.episodes_per_code, seed=1000 + seed)
     metrics.update(checkpoint=str(ckpt), train_seed=seed)
     return {"metrics": metrics, "wall_s": wall, "positions": roll["positions"], "codes": roll["codes"]}
+
+
+def _say(line: str) -> None:
+    """One write per line, flushed: runs in other processes print beside this one."""
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
 
 
 def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable,
@@ -365,8 +371,8 @@ def reproduce_circles_modes(cfg: CirclesModesConfig) -> dict[str, Any]:
 
     def report(r, n, total) -> None:
         m = r.value["metrics"]
-        print(f"[{n}/{total}] {r.name}: min purity {m['min_purity']:.2f}, modes covered {m['modes_covered']}, "
-              f"NMI {m['nmi']:.2f}{'' if m['success'] else ' (below target)'} ({r.wall_s:.0f} s)", flush=True)
+        _say(f"[{n}/{total}] {r.name}: min purity {m['min_purity']:.2f}, modes covered {m['modes_covered']}, "
+            f"NMI {m['nmi']:.2f}{'' if m['success'] else ' (below target)'} ({r.wall_s:.0f} s)")
 
     by_key = _run_all(cfg, _modes_job, report, names=cfg.cases)
     results: dict[str, Any] = {
@@ -426,7 +432,7 @@ def _continuous_job(cfg: CirclesContinuousConfig, learner: str, seed: int) -> di
     from pomil.algos.adversarial import train_adversarial
     from pomil.eval.circles import evaluate_code_radius
 
-    print(f"[{learner}] seed {seed}: training", flush=True)
+    _say(f"[{learner}] seed {seed}: training")
     t0 = time.perf_counter()
     ckpt = train_adversarial(adversarial_config(cfg, learner, seed, Path(cfg.runs) / learner / f"seed{seed}",
                                                 demos=cfg.demos, code_kind="continuous"))
@@ -494,9 +500,8 @@ def reproduce_circles_continuous(cfg: CirclesContinuousConfig) -> dict[str, Any]
 
     def report(r, n, total) -> None:
         m = r.value["metrics"]
-        print(f"[{n}/{total}] {r.name}: Spearman rho {m['spearman']:+.3f}, radius {m['radius_covered'][0]:.2f} .. "
-              f"{m['radius_covered'][1]:.2f}{'' if m['success'] else ' (below target)'} ({r.wall_s:.0f} s)",
-              flush=True)
+        _say(f"[{n}/{total}] {r.name}: Spearman rho {m['spearman']:+.3f}, radius {m['radius_covered'][0]:.2f} .. "
+            f"{m['radius_covered'][1]:.2f}{'' if m['success'] else ' (below target)'} ({r.wall_s:.0f} s)")
 
     done = _run_all(cfg, _continuous_job, report, names=(cfg.learner,))
     runs = [done[cfg.learner, s]["metrics"] for s in range(cfg.seeds)]
@@ -663,7 +668,7 @@ def hopper_table(results: dict[str, Any]) -> str:
 def _tasks_job(cfg: HopperReproConfig, name: str, seed: int) -> dict[str, Any]:
     from pomil.eval.tasks import evaluate_tasks, reference_of
 
-    print(f"[{name}] seed {seed}: training", flush=True)
+    _say(f"[{name}] seed {seed}: training")
     t0 = time.perf_counter()
     run_dir = cfg.path("runs") / name / f"seed{seed}"
     ckpt = train_learner(cfg, name, seed, run_dir)
@@ -703,11 +708,11 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
 
     def report(r, n, total) -> None:
         m = r.value["metrics"]
-        print(f"[{n}/{total}] {r.name}: " + "; ".join(
+        _say(f"[{n}/{total}] {r.name}: " + "; ".join(
             f"{t} (code {m['tasks'][t]['code']}): norm {m['tasks'][t]['normalised_return']:.2f}, "
             f"progress {m['tasks'][t]['progress']:.2f}, displacement {m['tasks'][t]['displacement_ratio']:.2f}"
             + (f", on-task {m['tasks'][t]['on_task_share']:.2f}" if "on_task_share" in m["tasks"][t] else "")
-            for t in tasks) + f" ({r.wall_s:.0f} s)", flush=True)
+            for t in tasks) + f" ({r.wall_s:.0f} s)")
 
     done = _run_all(cfg, _tasks_job, report)
     for name in cfg.learners:
