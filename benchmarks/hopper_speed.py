@@ -17,7 +17,9 @@ Prints env-steps/s of:
    torch thread; 0: torch's own thread count), to show what it is worth; with
    ``--precision float32,bfloat16`` once per ``precision`` (bfloat16: the updates'
    network passes under ``torch.autocast``); with ``--belief-encoder gru,lstm,attention``
-   once per belief encoder (the same loop, so their throughputs compare);
+   once per belief encoder (the same loop, so their throughputs compare); with
+   ``--variants '{"NAME": {FIELD: VALUE, ...}, ...}'`` once more per named set of
+   ``AdversarialConfig`` values (the recipe's update work cut this way or that);
 7. the peers, when the ``bench`` extra is installed (``pip install -e '.[bench]'``):
    Stable-Baselines3's PPO (MLP) and sb3-contrib's RecurrentPPO (LSTM) training on
    the same task (Hopper-v5, paper setting, positions only), ``--peer-envs`` envs in
@@ -28,7 +30,7 @@ Prints env-steps/s of:
 
     .venv/bin/python benchmarks/hopper_speed.py [--num-envs 256] [--iterations 3] [--device cpu]
         [--train-envs 256,1024,4096] [--rollout-threads 1,0] [--precision float32,bfloat16]
-        [--belief-encoder gru,lstm,attention] [--peer-envs 8]
+        [--belief-encoder gru,lstm,attention] [--variants JSON] [--peer-envs 8]
 
 ``--train-envs`` times InfoGAIL-POMDP training once per number of parallel
 environments (for a GPU: many environments, large batches).
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -52,6 +55,7 @@ from pomil.config import from_dict
 from pomil.data import load_training_demos
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, hopper_kwargs, usable_cpus
 from pomil.envs.wrappers import ObservationMask
+from pomil.errors import PomilError
 
 
 def gym_single_speed(steps: int) -> float:
@@ -106,12 +110,23 @@ def main() -> None:
                     help="comma-separated precision settings for 5 (float32, bfloat16)")
     ap.add_argument("--belief-encoder", default="gru",
                     help="comma-separated belief encoders for 5 (gru, lstm, attention)")
+    ap.add_argument("--variants", default="{}",
+                    help='JSON {"name": {"field": value}}: 5 once more per named set of AdversarialConfig values')
     ap.add_argument("--peer-envs", type=int, default=8, help="environments of the SB3 peers (7; 0: skip them)")
     args = ap.parse_args()
     n = args.num_envs
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
     settings = [(int(t), p, e) for t in args.rollout_threads.split(",") for p in args.precision.split(",")
                 for e in args.belief_encoder.split(",")]
+    try:
+        variants = json.loads(args.variants)
+        assert isinstance(variants, dict) and all(isinstance(v, dict) for v in variants.values())
+        for name, over in variants.items():  # unknown fields and bad values fail here, not after minutes of timing
+            from_dict(AdversarialConfig, {"demos": args.demos, **over}, f"--variants {name}")
+    except (ValueError, AssertionError, PomilError) as err:
+        why = str(err).splitlines()[0] if str(err) else f"got {args.variants[:60]}"
+        raise SystemExit("--variants: expected a JSON object of named AdversarialConfig values, e.g. "
+                         f"'{{\"no GP\": {{\"gradient_penalty\": 0}}}}' ({why})") from None
     kw = hopper_kwargs("forward", "paper")
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
     print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, "
@@ -125,23 +140,24 @@ def main() -> None:
                                   device=args.device))
         rows.append(("expert PPO training (64 envs, MLP)",
                      float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
-        for m in train_envs:
-            for threads, precision, encoder in settings:
-                run = Path(tmp) / f"ip{m}-{threads}-{precision}-{encoder}"
-                values = {"learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
-                          "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0,
-                          "eval_every": 0,
-                          "log_every": 1, "progress": False, "device": args.device, "num_envs": m,
-                          "rollout_threads": threads, "precision": precision, "belief_encoder": encoder}
-                train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
-                row = last_row(run)
-                note = "".join(f", {label}{value}" for i, (label, value) in
-                               enumerate((("rollout_threads ", threads), ("", precision), ("", encoder)))
-                               if len({setting[i] for setting in settings}) > 1)  # what the rows differ in
-                what = f"InfoGAIL-POMDP training ({m} envs, all updates{note})"
-                rows.append((what, float(row["time/env_steps_per_s"])))
-                shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
-                share_lines.append(f"time shares, {what}: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
+        runs = [(m, *setting, "", {}) for m in train_envs for setting in settings]
+        runs += [(train_envs[0], *settings[0], name, over) for name, over in variants.items()]
+        for m, threads, precision, encoder, name, over in runs:
+            run = Path(tmp) / f"ip{m}-{threads}-{precision}-{encoder}-{len(share_lines)}"
+            values = {"learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
+                      "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0,
+                      "eval_every": 0,
+                      "log_every": 1, "progress": False, "device": args.device, "num_envs": m,
+                      "rollout_threads": threads, "precision": precision, "belief_encoder": encoder, **over}
+            train_adversarial(from_dict(AdversarialConfig, values, f"--variants {name}" if name else "benchmark"))
+            row = last_row(run)
+            note = "".join(f", {label}{value}" for i, (label, value) in
+                           enumerate((("rollout_threads ", threads), ("", precision), ("", encoder)))
+                           if len({setting[i] for setting in settings}) > 1)  # what the rows differ in
+            what = f"InfoGAIL-POMDP training ({m} envs, all updates{note}{', ' + name if name else ''})"
+            rows.append((what, float(row["time/env_steps_per_s"])))
+            shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
+            share_lines.append(f"time shares, {what}: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))
     ours = [(what, v) for what, v in rows if what.startswith("InfoGAIL-POMDP training")]
     peers = []
     for kind, name in (("ppo", "SB3 PPO (MLP)"), ("recurrent", "sb3-contrib RecurrentPPO (LSTM)")):

@@ -1,0 +1,28 @@
+"""The benchmark scripts' own input checks (their timings are measured, never asserted)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def hopper_speed(*args):
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "hopper_speed.py"), *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("variants, says", [
+    ("[1]", "(got [1])"),
+    ("{not json", "Expecting property name"),
+    ('{"x": {"gradient_penaltyy": 0}}', "unknown key(s) ['gradient_penaltyy']"),
+    ('{"x": {"gradient_penalty": -1}}', "'gradient_penalty': expected a finite number in [0, inf), got -1.0"),
+])
+def test_hopper_speed_rejects_bad_variants_before_timing_anything(variants, says):
+    r = hopper_speed("--variants", variants)
+    assert r.returncode == 1
+    assert r.stdout == ""  # nothing timed: the simulator's row would be the first line
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("--variants: expected a JSON object") and says in lines[0], r.stderr
