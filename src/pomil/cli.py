@@ -607,6 +607,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        from pomil.envs.batch import mujoco_warnings_once
+
+        mujoco_warnings_once()  # gymnasium's HalfCheetah model warns at each load: once is enough
         return int(args.func(args) or 0)
     except PomilError as err:
         print(f"pomil: error: {err}", file=sys.stderr)

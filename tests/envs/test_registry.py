@@ -79,3 +79,22 @@ def test_sim_warp_without_the_gpu_extra_is_a_one_line_error(monkeypatch):
         make_vec_env("Pendulum-v1", {}, 2, sim="warp")
     with pytest.raises(ValueError, match="unknown sim 'gpu'"):
         make_vec_env(HOPPER_ID, {}, 2, sim="gpu")
+
+
+def test_a_mujoco_warning_is_shown_once_per_process_not_once_per_copy():
+    # gymnasium's HalfCheetah XML warns (deprecated settotalmass) at every model load: 1,136 lines in one
+    # 3-seed reproduction before.  A fresh process: the hook is process-wide, as MuJoCo's own printing is.
+    import subprocess
+    import sys
+
+    def warnings(code: str) -> list[str]:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        return [line for line in r.stderr.splitlines() if "settotalmass" in line]
+
+    raw = warnings("import gymnasium as gym\n[gym.make('HalfCheetah-v5') for _ in range(3)]\n")
+    if not raw:
+        pytest.skip("this gymnasium's HalfCheetah model no longer warns")
+    assert len(raw) == 3  # MuJoCo's own: one per load
+    lines = warnings("from pomil.envs.batch import GymSim\nGymSim('HalfCheetah-v5', 3); GymSim('HalfCheetah-v5', 2)\n")
+    assert len(lines) == 1 and lines[0].startswith("WARNING (MuJoCo; repeats of it are not shown):"), lines

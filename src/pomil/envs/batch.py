@@ -11,10 +11,31 @@ simulator, this one costs gymnasium's per-step overhead (see
 
 from __future__ import annotations
 
+import sys
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
+
+def mujoco_warnings_once() -> None:
+    """Show each distinct MuJoCo warning once per process (MuJoCo prints one per model load: gymnasium's
+    HalfCheetah gives one for each of N copies, every run).  Installed only where no hook is set yet
+    (``mujoco.set_mju_user_warning``); nothing happens without MuJoCo."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+    if mujoco.get_mju_user_warning() is not None:
+        return
+    seen: set[str] = set()
+
+    def warn(message: str) -> None:
+        if message not in seen:
+            seen.add(message)
+            print(f"WARNING (MuJoCo; repeats of it are not shown): {message}", file=sys.stderr, flush=True)
+
+    mujoco.set_mju_user_warning(warn)
 
 
 def check_box_spaces(env: gym.Env, env_id: str) -> tuple[int, int]:
@@ -39,6 +60,7 @@ class GymSim:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.env_id = env_id
+        mujoco_warnings_once()
         self.envs = [gym.make(env_id, **(env_kwargs or {})) for _ in range(num_envs)]
         self.obs_dim, self.act_dim = check_box_spaces(self.envs[0], env_id)
         self.num_envs = num_envs
