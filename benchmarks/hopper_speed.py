@@ -43,6 +43,7 @@ import csv
 import json
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -96,6 +97,39 @@ def last_row(run: Path) -> dict[str, str]:
     return list(csv.DictReader(open(run / "metrics.csv", newline="")))[-1]
 
 
+def training_configs(args: argparse.Namespace, train_envs: list[int],
+                     settings: list[tuple[int, str, str]]) -> list[tuple[str, AdversarialConfig]]:
+    """(row label, config) of each timed InfoGAIL-POMDP loop (item 5): one per env count and setting,
+    then one per ``--variants`` entry on the first of them; SystemExit with one line on a bad entry."""
+    try:
+        variants = json.loads(args.variants)
+    except ValueError as err:
+        raise SystemExit(f"--variants: {VARIANTS_EXPECTED} ({err})") from None
+    if not isinstance(variants, dict) or not all(isinstance(v, dict) for v in variants.values()):
+        raise SystemExit(f"--variants: {VARIANTS_EXPECTED} (got {args.variants[:60]})")
+    runs = [(m, *setting, "", {}) for m in train_envs for setting in settings]
+    runs += [(train_envs[0], *settings[0], name, over) for name, over in variants.items()]
+    configs = []
+    for m, threads, precision, encoder, name, over in runs:
+        values = {"learner": "infogail-pomdp", "demos": args.demos, "iterations": args.iterations,
+                  "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
+                  "progress": False, "device": args.device, "num_envs": m, "rollout_threads": threads,
+                  "precision": precision, "belief_encoder": encoder, **over}
+        try:
+            cfg = from_dict(AdversarialConfig, values, f"--variants {name}" if name else "benchmark")
+        except PomilError as err:
+            raise SystemExit(f"--variants: {VARIANTS_EXPECTED} ({str(err).splitlines()[0]})") from None
+        note = "".join(f", {label}{value}" for i, (label, value) in
+                       enumerate((("rollout_threads ", threads), ("", precision), ("", encoder)))
+                       if len({setting[i] for setting in settings}) > 1)  # what the rows differ in
+        configs.append((f"InfoGAIL-POMDP training ({m} envs, all updates{note}{', ' + name if name else ''})", cfg))
+    return configs
+
+
+VARIANTS_EXPECTED = ('expected a JSON object of named AdversarialConfig values, e.g. '
+                     '\'{"no GP": {"gradient_penalty": 0}}\'')
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--num-envs", type=int, default=AdversarialConfig.num_envs,
@@ -118,15 +152,7 @@ def main() -> None:
     train_envs = [int(v) for v in args.train_envs.split(",")] if args.train_envs else [n]
     settings = [(int(t), p, e) for t in args.rollout_threads.split(",") for p in args.precision.split(",")
                 for e in args.belief_encoder.split(",")]
-    try:
-        variants = json.loads(args.variants)
-        assert isinstance(variants, dict) and all(isinstance(v, dict) for v in variants.values())
-        for name, over in variants.items():  # unknown fields and bad values fail here, not after minutes of timing
-            from_dict(AdversarialConfig, {"demos": args.demos, **over}, f"--variants {name}")
-    except (ValueError, AssertionError, PomilError) as err:
-        why = str(err).splitlines()[0] if str(err) else f"got {args.variants[:60]}"
-        raise SystemExit("--variants: expected a JSON object of named AdversarialConfig values, e.g. "
-                         f"'{{\"no GP\": {{\"gradient_penalty\": 0}}}}' ({why})") from None
+    configs = training_configs(args, train_envs, settings)  # every one checked before anything is timed
     kw = hopper_kwargs("forward", "paper")
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else "none"
     print(f"torch {torch.__version__}, {usable_cpus()} usable CPU cores, {torch.get_num_threads()} torch threads, "
@@ -140,21 +166,10 @@ def main() -> None:
                                   device=args.device))
         rows.append(("expert PPO training (64 envs, MLP)",
                      float(last_row(Path(tmp) / "expert")["time/env_steps_per_s"])))
-        runs = [(m, *setting, "", {}) for m in train_envs for setting in settings]
-        runs += [(train_envs[0], *settings[0], name, over) for name, over in variants.items()]
-        for m, threads, precision, encoder, name, over in runs:
-            run = Path(tmp) / f"ip{m}-{threads}-{precision}-{encoder}-{len(share_lines)}"
-            values = {"learner": "infogail-pomdp", "demos": args.demos, "out": str(run),
-                      "iterations": args.iterations, "bc_init_iterations": 0, "policy_warmup_iterations": 0,
-                      "eval_every": 0,
-                      "log_every": 1, "progress": False, "device": args.device, "num_envs": m,
-                      "rollout_threads": threads, "precision": precision, "belief_encoder": encoder, **over}
-            train_adversarial(from_dict(AdversarialConfig, values, f"--variants {name}" if name else "benchmark"))
+        for i, (what, cfg) in enumerate(configs):
+            run = Path(tmp) / f"infogail-pomdp-{i}"
+            train_adversarial(replace(cfg, out=str(run)))
             row = last_row(run)
-            note = "".join(f", {label}{value}" for i, (label, value) in
-                           enumerate((("rollout_threads ", threads), ("", precision), ("", encoder)))
-                           if len({setting[i] for setting in settings}) > 1)  # what the rows differ in
-            what = f"InfoGAIL-POMDP training ({m} envs, all updates{note}{', ' + name if name else ''})"
             rows.append((what, float(row["time/env_steps_per_s"])))
             shares = {k.split('_', 1)[1]: float(v) for k, v in row.items() if k.startswith("time/share_")}
             share_lines.append(f"time shares, {what}: " + ", ".join(f"{k} {v:.0%}" for k, v in shares.items()))

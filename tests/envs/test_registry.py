@@ -1,6 +1,8 @@
 """The environment registry: each family declared once, and no environment id outside envs/."""
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -84,9 +86,6 @@ def test_sim_warp_without_the_gpu_extra_is_a_one_line_error(monkeypatch):
 def test_a_mujoco_warning_is_shown_once_per_process_not_once_per_copy():
     # gymnasium's HalfCheetah XML warns (deprecated settotalmass) at every model load: 1,136 lines in one
     # 3-seed reproduction before.  A fresh process: the hook is process-wide, as MuJoCo's own printing is.
-    import subprocess
-    import sys
-
     def warnings(code: str) -> list[str]:
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stderr
