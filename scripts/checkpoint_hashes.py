@@ -8,7 +8,8 @@ Run it before and after a change that must not alter what is computed::
 
 The checkpoint hash covers every tensor, number and string in the checkpoint
 (network and optimiser states, RNG states, env, iteration, ...) except its
-``config`` (which names the run directory, and gains keys as options are added).  The metrics hash covers every logged
+``config`` (which names the run directory, and gains keys as options are added) and its ``carried`` state.
+The metrics hash covers every logged
 column of metrics.csv except the wall-clock ones (``time/...``).
 ``tests/test_checkpoint_hashes.py`` holds the hashes of this machine.
 """
@@ -50,9 +51,11 @@ def _feed(h: "hashlib._Hash", obj: Any) -> None:
 
 
 def checkpoint_hash(path: str | Path) -> str:
-    """sha256 of a checkpoint's contents, without its ``config``."""
+    """sha256 of a checkpoint's contents, without its ``config`` and ``carried`` (the environment's generators and
+    the code assignment that ``--resume`` restores: they follow from what is hashed, and the hashes recorded before
+    checkpoints kept them stay valid)."""
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    ckpt = {k: v for k, v in ckpt.items() if k != "config"}
+    ckpt = {k: v for k, v in ckpt.items() if k not in ("config", "carried")}
     h = hashlib.sha256()
     _feed(h, ckpt)
     return h.hexdigest()

@@ -20,7 +20,7 @@ from typing import Any, Literal, get_args, get_origin
 
 import numpy as np
 
-from pomil.config import field_help, field_interval, field_names, from_dict, load_config_file, option
+from pomil.config import check_values, field_help, field_interval, field_names, from_dict, load_config_file, option
 from pomil.errors import PomilError
 
 
@@ -55,8 +55,11 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
 
 
 def config_from_args(cls: type, args: argparse.Namespace) -> Any:
-    """Defaults, then the --config file, then flags; unknown keys are an error."""
+    """Defaults, then the --config file, then flags; unknown keys are an error, and every key of the file
+    is checked, also where a flag overrides it."""
     values: dict[str, Any] = load_config_file(args.config) if getattr(args, "config", None) else {}
+    if values:
+        check_values(cls, values, args.config)
     for f in dataclasses.fields(cls):
         v = getattr(args, f.name, None)
         if v is not None:

@@ -202,6 +202,28 @@ def _coerce_named(value: Any, tp: Any, key: str, named: dict[str, int]) -> Any:
                           f"got {value!r}") from None
 
 
+def check_values(cls: type, values: dict[str, Any], source: str) -> None:
+    """Check every key of ``values`` (a config file's) on its own, before flags override any of them: a
+    known key (old names read), a value of the field's type within its interval; one-line ConfigError or
+    PomilError naming ``source`` otherwise."""
+    values = _renamed(cls, values, source, note=False)
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise PomilError(f"{source}: unknown key(s) {unknown}; valid keys are: {', '.join(fields)}")
+    hints = _resolved_types(cls)
+    for key, value in values.items():
+        if key == "preset" and value == AUTO:
+            continue
+        try:
+            _check_value(key, _coerce_named(value, hints[key], key, field_names(fields[key])), hints[key],
+                         field_interval(fields[key]))
+        except PomilError as err:
+            raise type(err)(f"{source}: {err}") from None
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{source}: config key '{key}': {err}") from None
+
+
 def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T:
     """Build ``cls`` from a dict, rejecting unknown keys and coercing types.
 

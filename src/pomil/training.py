@@ -200,14 +200,19 @@ class RunStart:
 def resume_run(
     ckpt_path: Path, config: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, Any],
     generator: torch.Generator, device: torch.device | str = "cpu", config_class: type | None = None,
+    carried: dict[str, Any] | None = None,
 ) -> RunStart:
-    """Restore networks, optimisers and RNGs from a run's checkpoint; returns its iteration
-    and environment-step count.
+    """Restore networks, optimisers, RNGs and carried state from a run's checkpoint; returns its
+    iteration and environment-step count.
 
     ``nets`` maps a key of the checkpoint's ``nets`` (or ``policy``) to a module;
     None entries are skipped.  The optimisers keep the hyperparameters they were built
-    with (the run's config), so that a resumed run may lower its learning rates.  A config whose
-    ``iterations`` is below the checkpoint's iteration is refused.
+    with (the run's config), so that a resumed run may lower its learning rates.  ``carried``
+    maps a key of the checkpoint's ``carried`` to an object with ``load_state_dict`` (what a
+    running process holds beside its networks: the environment's generators, a code assignment);
+    a checkpoint written before pomil kept it resumes with that state fresh, with a note (the
+    run then goes on, but not bit for bit as it would have).  A config whose ``iterations`` is
+    below the checkpoint's iteration is refused.
     """
     if not ckpt_path.exists():
         raise PomilError(f"{ckpt_path}: nothing to resume (no checkpoint in {ckpt_path.parent})")
@@ -239,11 +244,26 @@ def resume_run(
                     del g[key]
                 g.update(h)
         restore_rng(ckpt["rng"], generator)
+        restore_carried(ckpt_path, ckpt.get("carried"), carried or {})
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as err:
         first = (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
         raise PomilError(f"{ckpt_path}: cannot resume from this checkpoint ({type(err).__name__}: {first})") from None
     steps = ckpt.get("env_steps", 0)
     return RunStart(done, int(steps) if isinstance(steps, (int, float)) and math.isfinite(steps) else 0)
+
+
+def restore_carried(ckpt_path: Path, saved: Any, carried: dict[str, Any]) -> None:
+    """Load each object of ``carried`` from the checkpoint's ``carried`` entry of its name (see :func:`resume_run`)."""
+    if not carried:
+        return
+    if saved is None:
+        print(f"pomil: note: {ckpt_path} keeps no state beside the networks ({', '.join(carried)}): resuming with "
+              "it fresh, so this run goes on close to, not exactly as, the run uninterrupted", file=sys.stderr)
+        return
+    if not isinstance(saved, dict):
+        raise TypeError("'carried' is not a dict")
+    for name, obj in carried.items():
+        obj.load_state_dict(saved[name])
 
 
 def check_optimizer_state(opt: torch.optim.Optimizer) -> None:
@@ -540,6 +560,7 @@ class RunLoop:
         self.record: dict[str, Any] = {}
         self.nets: dict[str, Any] = {}
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.carried: dict[str, Any] = {}
 
     def __enter__(self) -> "RunLoop":
         return self
@@ -553,19 +574,25 @@ class RunLoop:
         return self.generator
 
     def start(self, *, env: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, torch.optim.Optimizer],
-              env_steps: bool = True, record: dict[str, Any] | None = None) -> bool:
+              env_steps: bool = True, record: dict[str, Any] | None = None,
+              carried: dict[str, Any] | None = None) -> bool:
         """Take the lock, resume (under ``--resume``) and write ``config.json``; False when the checkpoint
         is at the last iteration already (nothing to do: a note says so).
 
         ``env``: the environment's id, kwargs and observation_mask; ``nets``: every network by name, the
         policy as ``policy`` (None entries skipped); ``env_steps``: whether the learner counts them;
         ``record``: what the run chose from the data before training (``--num-codes auto``'s K and its
-        evidence), written into config.json after the config and into the checkpoint as ``record``."""
+        evidence), written into config.json after the config and into the checkpoint as ``record``;
+        ``carried``: by name, what else the running process holds and the next iteration reads (objects with
+        ``state_dict`` and ``load_state_dict``: the batched environment, whose generators draw the next
+        episodes' initial states; a code assignment that a step refreshes now and then), kept in the
+        checkpoint as ``carried`` so that a resumed run goes on exactly as the run uninterrupted."""
         self.env, self.nets, self.optimizers, self.record = env, nets, optimizers, dict(record or {})
+        self.carried = {k: v for k, v in (carried or {}).items() if v is not None}
         self.lock.acquire(self.resume)
         config = to_dict(self.config)
-        begun = (resume_run(self.ckpt_path, config, nets, optimizers, self.generator, self.device, type(self.config))
-                 if self.resume else RunStart())
+        begun = (resume_run(self.ckpt_path, config, nets, optimizers, self.generator, self.device, type(self.config),
+                            self.carried) if self.resume else RunStart())
         self.iteration = begun.iteration
         self.env_steps = begun.env_steps if env_steps else None
         self.guard.saved(begun.iteration)
@@ -622,7 +649,8 @@ class RunLoop:
     def state(self) -> dict[str, Any]:
         """The checkpoint (version 1) of every learner, less its iteration: ``algo``, ``config``,
         ``env``, ``policy_arch``, ``policy`` (what :class:`pomil.TrainedPolicy` loads), ``optimizers``
-        and ``rng`` (what ``--resume`` restores); ``nets`` (every network by name) when there is more
+        and ``rng`` (what ``--resume`` restores, with ``carried`` when :meth:`start` was given it);
+        ``nets`` (every network by name) when there is more
         than the policy; ``obs_norm`` when the policy normalises its observations (experts);
         ``env_steps`` when the learner counts them; ``record`` when the run chose something from the data
         (:meth:`start`)."""
@@ -635,6 +663,8 @@ class RunLoop:
             payload["obs_norm"] = self.nets["obs_norm"].state_dict()
         payload["optimizers"] = {k: opt.state_dict() for k, opt in self.optimizers.items()}
         payload["rng"] = rng_state(self.generator)
+        if self.carried:
+            payload["carried"] = {k: obj.state_dict() for k, obj in self.carried.items()}
         if self.env_steps is not None:
             payload["env_steps"] = self.env_steps
         if self.record:

@@ -836,17 +836,18 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         if cfg.code_kind == "continuous" and num_codes and cfg.bc_init_codes == "mixture":
             episode_codes = EpisodeCodes(expert, num_codes, cfg.code_prior).to(loop.device)
             nets["episode_codes"] = episode_codes  # the BC term's codes, kept for --resume
-        if not loop.start(env=env_info, nets=nets, optimizers=opt, record=choice.record() if choice else None):
-            return loop.ckpt_path
         expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
         run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
                              shift_actions(expert.actions), execute, num_codes, loop.guard,
                              episode_codes=episode_codes)
+        run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
+        if not loop.start(env=env_info, nets=nets, optimizers=opt, record=choice.record() if choice else None,
+                          carried={"env": env, "assignment": run.assignment}):
+            return loop.ckpt_path
         # A checkpoint at iteration 0 is that of a warm start alone (--iterations 0): resuming it goes on from there.
         init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
                                     episode_codes)
                       if loop.iteration == 0 and not resume and cfg.bc_init_iterations > 0 else {})
-        run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
         return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
                         first_row={**(choice.stats() if choice else {}), **init_stats}, evaluate=evaluate,

@@ -131,6 +131,23 @@ class MixtureAssignment:
         self._calls += 1
         return self.responsibilities
 
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The calls made and the responsibilities of the last refresh (empty before the first): what a
+        resumed run needs to refresh at the same steps from the same values (``RunLoop.start``'s ``carried``)."""
+        resp = self.responsibilities if self.responsibilities is not None else torch.empty(0, 0)
+        return {"calls": torch.tensor(self._calls), "responsibilities": resp.detach().clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        calls, resp = state["calls"], state["responsibilities"]
+        if not (isinstance(calls, torch.Tensor) and calls.numel() == 1 and not calls.is_floating_point()
+                and int(calls) >= 0 and isinstance(resp, torch.Tensor) and resp.ndim == 2):
+            raise ValueError("the code assignment's state is damaged")
+        episodes = self.data.mask.shape[1]
+        if resp.numel() and (resp.shape[1] != episodes or not resp.is_floating_point()):
+            raise ValueError(f"the code assignment covers {resp.shape[1]} episodes, not the {episodes} demonstrated")
+        self._calls = int(calls)
+        self.responsibilities = resp.to(self.data.mask.device) if resp.numel() else None
+
 
 @torch.no_grad()
 def episode_log_likelihoods(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor,

@@ -163,7 +163,7 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
         opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=cfg.lr, eps=1e-5)
         nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
         if not loop.start(env={"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}, nets=nets,
-                          optimizers={"ppo": opt}):
+                          optimizers={"ppo": opt}, carried={"env": raw_env}):
             raw_env.close()
             return loop.ckpt_path
 

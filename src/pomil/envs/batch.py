@@ -17,6 +17,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from pomil.envs.vec import generator_states, set_generator_states
+
 
 def mujoco_warnings_once() -> None:
     """Show each distinct MuJoCo warning once per process (MuJoCo prints one per model load: gymnasium's
@@ -67,6 +69,13 @@ class GymSim:
         self._act_dtype = self.envs[0].action_space.dtype
         self.obs = np.zeros((num_envs, self.obs_dim))
         self.done = np.ones(num_envs, dtype=bool)
+
+    def rng_states(self) -> list[str]:
+        """Each copy's generator state (:func:`pomil.envs.vec.generator_states`)."""
+        return generator_states([env.unwrapped.np_random for env in self.envs])
+
+    def set_rng_states(self, states: list[str]) -> None:
+        set_generator_states([env.unwrapped.np_random for env in self.envs], states)
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         for i, env in enumerate(self.envs):

@@ -208,6 +208,14 @@ class CirclesVecEnv:
     def _obs(self) -> torch.Tensor:
         return self._history.reshape(self.num_envs, -1).clone()
 
+    def state_dict(self) -> dict[str, Any]:
+        """Nothing to keep across a resume: every episode starts at the origin."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state != {}:
+            raise ValueError("the circles environment keeps no state")
+
     def reset(self) -> torch.Tensor:
         self.t = 0
         self._needs_reset = False

@@ -38,6 +38,7 @@ import numpy as np
 from gymnasium.envs.mujoco.hopper_v5 import HopperEnv
 from gymnasium.utils.seeding import np_random
 
+from pomil.envs.vec import generator_states, set_generator_states
 from pomil.parallel import usable_cpus
 
 HOPPER_ID = "Hopper-v5"
@@ -275,6 +276,13 @@ class HopperSim:
     @property
     def x_position(self) -> np.ndarray:
         return self.qpos[:, 0].copy()
+
+    def rng_states(self) -> list[str]:
+        """The per-copy generators' states (:func:`pomil.envs.vec.generator_states`)."""
+        return generator_states(self._rngs)
+
+    def set_rng_states(self, states: list[str]) -> None:
+        set_generator_states(self._rngs, states)
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         if seed is not None:

@@ -8,10 +8,44 @@ learner's partial view).
 
 from __future__ import annotations
 
-from typing import Any
+import json
+from typing import Any, Sequence
 
 import numpy as np
 import torch
+
+
+def generator_states(rngs: Sequence[np.random.Generator]) -> list[str]:
+    """Each NumPy generator's bit-generator state as JSON text: what a checkpoint keeps of a
+    simulator's per-copy generators (text, never a pickle)."""
+    return [json.dumps(rng.bit_generator.state) for rng in rngs]
+
+
+def set_generator_states(rngs: Sequence[np.random.Generator], states: Any) -> None:
+    """Put :func:`generator_states`' texts back into ``rngs``; ValueError when they do not fit."""
+    if not isinstance(states, list) or len(states) != len(rngs) or not all(isinstance(x, str) for x in states):
+        raise ValueError(f"the environment's generator states are not {len(rngs)} texts")
+    for rng, text in zip(rngs, states):
+        try:
+            rng.bit_generator.state = json.loads(text)
+        except (TypeError, ValueError, KeyError) as err:
+            raise ValueError(f"an environment generator's state is damaged ({type(err).__name__})") from None
+
+
+def env_state(seed: int | None, rng_states: list[str]) -> dict[str, Any]:
+    """A batched env's checkpointed state: the seed its next reset still takes (None once taken) and the
+    per-copy generators' states, which draw every later reset's initial states."""
+    return {"seed": seed, "generators": rng_states}
+
+
+def env_seed(state: Any) -> int | None:
+    """The pending seed of an :func:`env_state`; ValueError when it is not one."""
+    if not isinstance(state, dict) or set(state) != {"seed", "generators"}:
+        raise ValueError("the environment's state is not {seed, generators}")
+    seed = state["seed"]
+    if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool)):
+        raise ValueError(f"the environment's pending seed is {seed!r}, not an integer")
+    return seed
 
 
 class TorchVecEnv:
@@ -44,6 +78,16 @@ class TorchVecEnv:
         seed = self._seed if seed is None else seed
         self._seed = None  # seeded once; later resets continue the generators
         return self._obs(self.sim.reset(seed))
+
+    def state_dict(self) -> dict[str, Any]:
+        """What a checkpoint keeps (:func:`env_state`), so that a resumed run's episodes start where the
+        uninterrupted run's would have."""
+        return env_state(self._seed, self.sim.rng_states())
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        seed = env_seed(state)
+        self.sim.set_rng_states(state["generators"])
+        self._seed = seed
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         obs, reward, term, trunc = self.sim.step(actions.detach().to("cpu", torch.float64).numpy())

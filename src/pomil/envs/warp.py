@@ -41,6 +41,7 @@ import torch
 from gymnasium.utils.seeding import np_random
 
 from pomil.envs.locomotion import HOPPER_DEFAULTS, HOPPER_ID
+from pomil.envs.vec import env_seed, env_state, generator_states, set_generator_states
 from pomil.errors import PomilError
 
 INSTALL_HINT = "pip install 'pomil[gpu]' (mujoco-warp==4.0.0)"
@@ -318,6 +319,15 @@ class WarpVecEnv:
         seed = self._seed if seed is None else seed
         self._seed = None  # seeded once; later resets continue the generators
         return self._view(self.sim.reset(seed))
+
+    def state_dict(self) -> dict[str, Any]:
+        """As :meth:`pomil.envs.vec.TorchVecEnv.state_dict`."""
+        return env_state(self._seed, generator_states(self.sim._rngs))
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        seed = env_seed(state)
+        set_generator_states(self.sim._rngs, state["generators"])
+        self._seed = seed
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         obs, reward, terminated, truncated = self.sim.step(actions.detach())
