@@ -1,6 +1,7 @@
 """pomil sweep on a local Ray: runs in parallel, a failed run reported, finished runs skipped on a re-run."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -135,21 +136,36 @@ def test_sweep_of_continuous_codes_reports_the_code_radius_correlation(tmp_path)
     assert "| code_prior=uniform | 1 |" in (out / "table.md").read_text()
 
 
-def test_run_jobs_on_ray_starts_the_costliest_first_and_keeps_job_order():
-    """Longest processing time first: with one CPU the jobs run in descending cost; results stay in job order."""
-    import time
-
+def test_run_jobs_on_ray_submits_the_costliest_first_and_keeps_job_order(monkeypatch):
+    """Longest processing time first: the tasks are submitted in descending cost (the scheduling decision,
+    checked as made rather than by when each task happened to start); results stay in job order."""
     import ray
 
+    from pomil import parallel
     from pomil.parallel import run_jobs
+
+    submitted, real_remote = [], ray.remote
+
+    class Recording:  # ray.remote(f).options(...).remote(fn, job, threads), noting each job as it is submitted
+        def __init__(self, remote_fn):
+            self.remote_fn = remote_fn
+
+        def options(self, **kwargs):
+            return Recording(self.remote_fn.options(**kwargs))
+
+        def remote(self, fn, job, threads):
+            submitted.append(job[0])
+            return self.remote_fn.remote(fn, job, threads)
 
     ray.init(num_cpus=1, include_dashboard=False, logging_level="ERROR")
     try:
+        monkeypatch.setattr(ray, "remote", lambda *a, **kw: (Recording(real_remote(*a)) if a and a[0] is parallel._call
+                                                             else real_remote(*a, **kw)))  # Ray's own uses pass
         costs = [0.05, 1.0, 0.4, 0.55]
-        results = run_jobs(lambda i: (i, time.time(), time.sleep(0.2))[:2], [(i,) for i in range(4)],
+        results = run_jobs(lambda i: (i, os.getpid()), [(i,) for i in range(4)],
                            [f"job {i}" for i in range(4)], ray=True, costs=costs)
     finally:
         ray.shutdown()
+    assert submitted == [1, 3, 2, 0]
     assert [r.value[0] for r in results] == [0, 1, 2, 3] and [r.name for r in results] == [f"job {i}" for i in range(4)]
-    started = sorted(range(4), key=lambda i: results[i].value[1])
-    assert started == [1, 3, 2, 0]
+    assert all(r.value[1] != os.getpid() for r in results)  # in Ray's worker processes
