@@ -94,15 +94,27 @@ def test_interval_notation():
     (["--eval-every", "-1"], "config key 'eval_every': expected an integer in [0, inf), got -1"),
     (["--config", "bad.json"], "bad.json: config key 'lr': expected a finite number in (0, inf), got nan"),
     (["--config", "int.json"], "int.json: config key 'iterations': expected int, got 2.5"),
+    # a flag over a bad key of the file: the file is still checked whole
+    (["--config", "int.json", "--iterations", "1"], "int.json: config key 'iterations': expected int, got 2.5"),
+    (["--config", "bad.json", "--lr", "1e-4"],
+     "bad.json: config key 'lr': expected a finite number in (0, inf), got nan"),
+    (["--config", "range.json", "--iterations", "3"],
+     "range.json: config key 'iterations': expected an integer in [0, inf), got -4"),
+    (["--config", "preset.json", "--preset", "default"],
+     "preset.json: config key 'preset': expected one of ['auto', 'default', 'paper-text', 'long-warm-start', "
+     "'fast-warm-start', 'deep-warm-start', 'terminating'], got 'fast'"),
 ])
 def test_cli_refuses_bad_values_in_one_line_and_writes_nothing(flags, text, tmp_path, demos_path, monkeypatch, capsys):
     (tmp_path / "bad.json").write_text('{"lr": NaN}')
     (tmp_path / "int.json").write_text('{"iterations": 2.5}')
+    (tmp_path / "range.json").write_text('{"iterations": -4}')
+    (tmp_path / "preset.json").write_text('{"preset": "fast"}')
     monkeypatch.chdir(tmp_path)
     code = main(["train", "infogail-pomdp", "--demos", str(demos_path), "--out", "run", *flags])
     err = capsys.readouterr().err
     assert code == 2 and err == f"pomil: error: {text}\n", err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "int.json"]  # no run directory, config.json, tb/
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "int.json", "preset.json",
+                                                          "range.json"]  # no run directory, config.json, tb/
 
 
 def test_cli_subprocess_bad_value_has_no_traceback(tmp_path):
