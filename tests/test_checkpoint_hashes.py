@@ -25,7 +25,7 @@ _spec = importlib.util.spec_from_file_location("checkpoint_hashes", ROOT / "scri
 ch = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(ch)
 
-# Recorded on main at 3070983 (before the architecture refactor of issue 17); checkpoints without their config.
+# Recorded on main at 3070983 (before the run loop was shared); checkpoints without their config.
 # The two InfoGAIL-POMDP runs re-recorded after the warm start's default became the whole-set code balance
 # (mixture_balance "dataset"): main before and after merging the refactor gave these same hashes.
 # The Intel Xeon (family 6 model 167) entries: recorded at 4b085d7 (continuous codes merged) and unchanged by the

@@ -399,7 +399,7 @@ def reproduce_circles_modes(cfg: CirclesModesConfig) -> dict[str, Any]:
 
 # ========================================================== circles-continuous
 CONTINUOUS_SUCCESS = 0.9
-"""A seed succeeds when |Spearman rho| between code value and fitted radius is at least this (issue 19)."""
+"""A seed succeeds when |Spearman rho| between code value and fitted radius is at least this."""
 
 
 @dataclass(frozen=True)
@@ -535,8 +535,8 @@ def reproduce_circles_continuous(cfg: CirclesContinuousConfig) -> dict[str, Any]
 # ====================================================================== Hopper
 METRICS = ("normalised_return", "progress", "displacement_ratio")
 TASKS_SUCCESS = {"normalised_return": 0.7, "progress": 0.7}
-"""A seed succeeds when, on every task, the code matched to it reaches these figures (the standard-Hopper target of
-issue 14, per seed): it imitates every task, each with its own code."""
+"""A seed succeeds when, on every task, the code matched to it reaches these figures (per seed): it imitates every
+task, each with its own code."""
 
 
 def tasks_success(m: dict[str, Any]) -> bool:

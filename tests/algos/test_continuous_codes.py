@@ -1,4 +1,4 @@
-"""Continuous latent codes (issue 19): shapes, the posterior's likelihood, the warm start, config errors."""
+"""Continuous latent codes: shapes, the posterior's likelihood, the warm start, config errors."""
 
 import math
 

@@ -112,7 +112,7 @@ LONG_WARM_START: dict[str, Any] = {
     "bc_init_iterations": 3000, "bc_init_lr": 1e-3, "bc_init_lr_decay": False, "bc_init_lr_warmup": 0.0,
     "bc_init_log_std_lr_scale": 1.0, "bc_init_fit_log_std": False,
 }
-"""Preset long-warm-start: the default warm start until 2026-12, 3000 steps at a constant lr 1e-3."""
+"""Preset long-warm-start: the former default warm start, 3000 steps at a constant lr 1e-3."""
 
 DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "bc_init_lr": 1e-2, "bc_init_lr_warmup": 0.2}
 """Preset deep-warm-start: the fast warm start with the rate rising linearly to 1e-2 over the first 20% of the
@@ -129,7 +129,7 @@ class AdversarialConfig(RunConfig):
         "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
                 "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
                 "otherwise), default (pomil's measured recipe), paper-text (the paper's text), long-warm-start (the "
-                "default warm start until 2026-12: 3000 steps at lr 1e-3), fast-warm-start (600 steps at lr 3e-3, "
+                "former default warm start: 3000 steps at lr 1e-3), fast-warm-start (600 steps at lr 3e-3, "
                 "the log std at 10x and fitted; worse on the paper's Hopper), deep-warm-start (the default's "
                 "schedule, the log std at 10x and fitted: 4/5 seeds on the paper's Hopper) or terminating (the "
                 "policy sees (z_t, dz_t) without a_{t-1}, and the fast warm start); config.json records the one that "
