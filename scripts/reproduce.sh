@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The main job: set up, then the circles reproduction (extra arguments go to `pomil reproduce circles`).
+# The main job: set up, then the circles reproduction over 3 seeds (extra arguments go to `pomil reproduce circles`;
+# `--seeds 10` runs the committed table's 10).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-exec .venv/bin/pomil reproduce circles "$@"
+exec .venv/bin/pomil reproduce circles --seeds 3 "$@"

@@ -156,6 +156,23 @@ def test_dataset_assignment_keeps_an_over_sampled_cluster_on_its_own_code():
             p.add_(0.5)
     assert assignment.update(policy) is first and assignment.update(policy) is first
     assert not torch.equal(assignment.update(policy), first)
+    # its state (what a checkpoint keeps): a new one refreshes at the same calls from the same answer
+    state = assignment.state_dict()
+    assert int(state["calls"]) == 4 and torch.equal(state["responsibilities"], assignment.responsibilities)
+    again = MixtureAssignment(data, prev, refresh=3)
+    again.load_state_dict(state)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.5)
+    assert all(torch.equal(again.update(policy), state["responsibilities"]) for _ in range(2))  # calls 4, 5: kept
+    torch.testing.assert_close(again.update(policy),  # call 6: recomputed from the policy
+                               balanced_responsibilities(episode_log_likelihoods(policy, data, prev)), rtol=0, atol=0)
+    empty = MixtureAssignment(data, prev).state_dict()
+    assert int(empty["calls"]) == 0 and empty["responsibilities"].numel() == 0
+    with pytest.raises(ValueError, match="covers 5 episodes, not the 64"):
+        again.load_state_dict({"calls": torch.tensor(1), "responsibilities": torch.ones(2, 5)})
+    with pytest.raises(ValueError, match="damaged"):
+        again.load_state_dict({"calls": torch.tensor(-1), "responsibilities": torch.ones(2, 64)})
 
 
 @pytest.mark.parametrize("balance", ["batch", "dataset"])

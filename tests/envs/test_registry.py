@@ -97,3 +97,40 @@ def test_a_mujoco_warning_is_shown_once_per_process_not_once_per_copy():
     assert len(raw) == 3  # MuJoCo's own: one per load
     lines = warnings("from pomil.envs.batch import GymSim\nGymSim('HalfCheetah-v5', 3); GymSim('HalfCheetah-v5', 2)\n")
     assert len(lines) == 1 and lines[0].startswith("WARNING (MuJoCo; repeats of it are not shown):"), lines
+
+
+@pytest.mark.parametrize("env_id", [HOPPER_ID, "Pendulum-v1"])
+def test_an_envs_state_dict_carries_its_generators_into_a_new_env(env_id):
+    """What a checkpoint keeps of a batched env: a new env loaded with it starts its next episodes from the
+    states the original would have drawn, and a seed not yet taken is still taken."""
+    fresh = make_vec_env(env_id, {}, 3, seed=7)
+    pending = fresh.state_dict()
+    assert pending["seed"] == 7
+    original = make_vec_env(env_id, {}, 3, seed=7)
+    original.reset()
+    original.step(torch.zeros(3, original.act_dim))
+    state = original.state_dict()
+    assert state["seed"] is None and len(state["generators"]) == 3 and all(isinstance(g, str) for g in
+                                                                          state["generators"])
+    copy = make_vec_env(env_id, {}, 3, seed=123)
+    copy.load_state_dict(state)
+    expected = original.reset()
+    assert torch.equal(copy.reset(), expected)
+    assert not torch.equal(original.reset(), expected)  # the generators moved on
+    other = make_vec_env(env_id, {}, 3, seed=123)
+    other.load_state_dict(pending)
+    assert torch.equal(other.reset(), fresh.reset())
+    with pytest.raises(ValueError, match="not 3 texts"):
+        other.load_state_dict({"seed": None, "generators": state["generators"][:2]})
+    with pytest.raises(ValueError, match="not an integer"):
+        other.load_state_dict({"seed": 1.5, "generators": state["generators"]})
+    for env in (fresh, original, copy, other):
+        env.close()
+
+
+def test_the_circles_env_keeps_no_state():
+    env = make_vec_env(CIRCLES_ID, {}, 2)
+    assert env.state_dict() == {}
+    env.load_state_dict({})
+    with pytest.raises(ValueError, match="keeps no state"):
+        env.load_state_dict({"seed": 1})

@@ -232,6 +232,13 @@ class WarpSim:
                                f"raise nconmax / njmax (now {self.data.naconmax // self.num_envs} / {self.data.njmax})")
 
     # -- the batched-simulator interface
+    def rng_states(self) -> list[str]:
+        """The per-copy generators' states (:func:`pomil.envs.vec.generator_states`)."""
+        return generator_states(self._rngs)
+
+    def set_rng_states(self, states: list[str]) -> None:
+        set_generator_states(self._rngs, states)
+
     def reset(self, seed: int | None = None) -> torch.Tensor:
         if self.t > 0:
             self.check_overflow()
@@ -322,11 +329,11 @@ class WarpVecEnv:
 
     def state_dict(self) -> dict[str, Any]:
         """As :meth:`pomil.envs.vec.TorchVecEnv.state_dict`."""
-        return env_state(self._seed, generator_states(self.sim._rngs))
+        return env_state(self._seed, self.sim.rng_states())
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         seed = env_seed(state)
-        set_generator_states(self.sim._rngs, state["generators"])
+        self.sim.set_rng_states(state["generators"])
         self._seed = seed
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
