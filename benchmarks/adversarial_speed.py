@@ -17,9 +17,9 @@ from dataclasses import replace
 from pathlib import Path
 
 from pomil.algos.adversarial import train_adversarial
-from pomil.learners import ADVERSARIAL
-from pomil.envs.circles import make_spec
 from pomil.demos import record_circles_demos
+from pomil.envs.circles import make_spec
+from pomil.learners import ADVERSARIAL
 from pomil.reproduce import CirclesReproConfig, adversarial_config
 
 
@@ -41,8 +41,9 @@ def main() -> None:
                                                         progress=False),
                                      learner, 0, out)
             train_adversarial(replace(cfg, eval_every=0, bc_init_iterations=0, update_mode=args.update_mode))
-            last = list(csv.DictReader(open(out / "metrics.csv")))[-1]
-            share = lambda k: float(last[f"time/share_{k}"])  # noqa: E731
+            with open(out / "metrics.csv", newline="") as f:
+                last = list(csv.DictReader(f))[-1]
+            share = lambda k, last=last: float(last[f"time/share_{k}"])  # noqa: E731
             print(f"{learner:16s} {float(last['time/env_steps_per_s']):12,.0f} {share('rollout'):8.0%} "
                   f"{share('critic'):8.0%} "
                   f"{share('posterior'):9.0%} {share('ppo'):6.0%}")

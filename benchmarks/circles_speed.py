@@ -19,8 +19,8 @@ import torch
 
 import pomil  # noqa: F401
 from pomil.algos.bc import BCConfig, train_bc
-from pomil.envs.circles import CirclesVecEnv, make_spec
 from pomil.demos import record_circles_demos
+from pomil.envs.circles import CirclesVecEnv, make_spec
 
 
 def batched_steps_per_s(num_envs: int, episodes: int = 20) -> float:

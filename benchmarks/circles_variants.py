@@ -54,7 +54,8 @@ def main() -> None:
                 t0 = time.perf_counter()
                 ckpt = train_adversarial(cfg)
                 wall = time.perf_counter() - t0
-                last = list(csv.DictReader(open(Path(cfg.out) / "metrics.csv")))[-1]
+                with open(Path(cfg.out) / "metrics.csv", newline="") as f:
+                    last = list(csv.DictReader(f))[-1]
                 m, _ = evaluate_circles(TrainedPolicy.load(ckpt), 100, seed=1000 + seed)
                 runs.append({"seed": seed, "nmi": m["nmi"], "min_purity": m["min_purity"],
                              "none_share": m["overall_none_share"],
@@ -67,7 +68,7 @@ def main() -> None:
                                                          for k in KEYS}}
     print(f"\n{key:22s} {'NMI':>12s} {'min purity':>12s} {'none share':>12s} {'env-steps/s':>12s}")
     for value, r in results["values"].items():
-        f = lambda k: f"{r[k][0]:.2f} ± {r[k][1]:.2f}"  # noqa: E731
+        f = lambda k, r=r: f"{r[k][0]:.2f} ± {r[k][1]:.2f}"  # noqa: E731
         print(f"{value:22s} {f('nmi'):>12s} {f('min_purity'):>12s} {f('none_share'):>12s} "
               f"{r['env_steps_per_s'][0]:12,.0f}")
     write_json(Path(args.out or f"results/circles/variants-{key}.json"), results)

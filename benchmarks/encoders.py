@@ -56,7 +56,8 @@ def train_one(task: str, encoder: str, seed: int, args: argparse.Namespace, epis
     t0 = time.perf_counter()
     ckpt = train_adversarial(cfg)
     wall = time.perf_counter() - t0
-    last = list(csv.DictReader(open(run_dir / "metrics.csv", newline="")))[-1]
+    with open(run_dir / "metrics.csv", newline="") as f:
+        last = list(csv.DictReader(f))[-1]
     row: dict[str, Any] = {"seed": seed, "wall_s": wall, "env_steps_per_s": float(last["time/env_steps_per_s"])}
     policy = TrainedPolicy.load(ckpt)
     if task == "circles":

@@ -48,8 +48,8 @@ from pathlib import Path
 
 import gymnasium as gym
 import torch
-
 from any_task_speed import batched_speed, gym_vector_speed  # benchmarks/ is on sys.path when run as a script
+
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.expert import ExpertConfig, train_expert
 from pomil.config import from_dict

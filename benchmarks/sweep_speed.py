@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 
 from pomil.algos.adversarial import AdversarialConfig
-from pomil.envs.circles import make_spec
 from pomil.demos import record_circles_demos
+from pomil.envs.circles import make_spec
 
 
 def main() -> None:

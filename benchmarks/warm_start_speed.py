@@ -34,7 +34,12 @@ from dataclasses import replace
 import torch
 
 from pomil.algos.adversarial import (
-    DEEP_WARM_START, FAST_WARM_START, LONG_WARM_START, AdversarialConfig, bc_warm_start, build_modules,
+    DEEP_WARM_START,
+    FAST_WARM_START,
+    LONG_WARM_START,
+    AdversarialConfig,
+    bc_warm_start,
+    build_modules,
     resolve_num_codes,
 )
 from pomil.algos.bc import _nll, episode_features, mixture_bc_loss

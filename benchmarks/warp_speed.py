@@ -34,8 +34,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch
-
 from any_task_speed import batched_speed  # this script's folder is on sys.path
+
 from pomil.envs.locomotion import HOPPER_ID, HopperSim, locomotion_kwargs, usable_cpus
 from pomil.envs.warp import SPECS, WarpSim
 
@@ -61,7 +61,7 @@ def agreement(env_id: str, kwargs: dict, device: str, num_envs: int, one_step_st
                       torch.as_tensor(np.stack([e.unwrapped.data.qvel for e in envs])))
         act = rng.uniform(-1, 1, (num_envs, sim.act_dim))
         obs, rew, _, _ = sim.step(torch.as_tensor(act, device=sim.device))
-        ref = [e.step(a) for e, a in zip(envs, act)]
+        ref = [e.step(a) for e, a in zip(envs, act, strict=True)]
         one_obs = max(one_obs, float(np.abs(obs.cpu().numpy() - np.stack([r[0] for r in ref])).max()))
         one_rew = max(one_rew, float(np.abs(rew.cpu().numpy() - np.array([r[1] for r in ref])).max()))
     # Whole episodes from the same seeds.

@@ -1,7 +1,7 @@
 import pytest
 
-from pomil.envs.circles import make_spec
 from pomil.demos import record_circles_demos
+from pomil.envs.circles import make_spec
 
 
 @pytest.fixture(scope="session")

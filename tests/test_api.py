@@ -64,7 +64,8 @@ def test_loading_a_foreign_file_is_a_one_line_error(tmp_path):
 
 
 def test_public_names_import_from_the_package():
-    from pomil import Demonstrations as D, TrainedPolicy as T
+    from pomil import Demonstrations as D
+    from pomil import TrainedPolicy as T
 
     assert T is TrainedPolicy and D.__name__ == "Demonstrations"
 

@@ -111,7 +111,7 @@ def test_labels_must_match_episode_count():
 
 
 def test_container_is_frozen(demos):
-    with pytest.raises(Exception):
+    with pytest.raises(AttributeError):  # dataclasses.FrozenInstanceError
         demos.observations = None
 
 

@@ -217,10 +217,8 @@ def mutated_payloads(draw, payload: dict) -> dict:
             st.builds(lambda s: torch.zeros(s), st.lists(st.integers(0, 3), max_size=3).map(tuple)),
             st.just(old.float() * math.inf) if isinstance(old, torch.Tensor) and old.numel() else st.just([]),
         ))
-        try:
+        with contextlib.suppress(KeyError, IndexError, TypeError):
             _set(payload, path, value)
-        except (KeyError, IndexError, TypeError):
-            pass
         leaves = list(_leaves(payload))
         if not leaves:
             break

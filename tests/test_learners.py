@@ -5,8 +5,8 @@ import pytest
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.bc import BCConfig, train_bc
 from pomil.cli import build_parser
-from pomil.errors import PomilError
 from pomil.config import to_dict
+from pomil.errors import PomilError
 from pomil.learners import ABLATIONS, ADVERSARIAL, LEARNERS, learner
 from pomil.reproduce import CirclesReproConfig
 

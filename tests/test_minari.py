@@ -65,7 +65,7 @@ def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypa
             act = env.action_space.sample()
             obs, rew, term, trunc, _ = env.step(act)
             for key, value in zip(("observations", "actions", "rewards", "terminations", "truncations"),
-                                  (obs, act, rew, term, trunc)):
+                                  (obs, act, rew, term, trunc), strict=True):
                 ep[key].append(value)
             done = term or trunc
         episodes.append(EpisodeBuffer(id=seed, **{k: np.asarray(v) for k, v in ep.items()}))

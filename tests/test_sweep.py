@@ -74,7 +74,7 @@ def test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_results(tmp
     seq, local, par = (json.loads((tmp_path / name / "metrics.json").read_text())["learners"]["bc-mlp"]["runs"]
                        for name in ("seq", "local", "par"))
     assert [(a["per_code"], a["mean_return"]) for a in local] == [(b["per_code"], b["mean_return"]) for b in par]
-    for a, b in zip(seq, par):
+    for a, b in zip(seq, par, strict=True):
         assert a["per_code"] == b["per_code"] and a["nmi"] == b["nmi"]
         assert a["mean_return"] == pytest.approx(b["mean_return"], rel=1e-5)  # 1 vs 2 torch threads: last-digit sums
     assert (tmp_path / "runs-par" / "bc-mlp" / "seed1" / "checkpoint.pt").exists()
@@ -107,7 +107,8 @@ def test_a_run_whose_worker_is_killed_resumes_from_its_checkpoint_on_retry(tmp_p
     output, _ = sweep.communicate(timeout=300)
     assert sweep.returncode == 0, output
     assert load_checkpoint(run)["iteration"] == 1500 and (run / "result.json").exists()
-    rows = list(csv.DictReader(open(run / "metrics.csv")))
+    with open(run / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     assert [int(r["iteration"]) for r in rows] == [1, *range(10, 1501, 10)]  # one continuous log
     elapsed = [float(r["time/elapsed_s"]) for r in rows]
     restarts = [i for i in range(1, len(rows)) if elapsed[i] < elapsed[i - 1]]

@@ -11,12 +11,12 @@ import pytest
 
 from pomil.config import from_dict, parse_kwargs
 from pomil.data import Demonstrations
+from pomil.demos import merge_demos, record_hopper_demos
 from pomil.envs import make_vec_env
 from pomil.envs.batch import GymSim
 from pomil.envs.locomotion import hopper_kwargs, locomotion_kwargs
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
-from pomil.demos import merge_demos, record_hopper_demos
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,7 +33,7 @@ def test_gym_sim_equals_gymnasium_and_freezes_ended_copies():
     obs = sim.reset(seed=11)
     np.testing.assert_array_equal(obs, np.stack([e.reset(seed=11 + i)[0] for i, e in enumerate(envs)]))
     rng = np.random.default_rng(0)
-    for t in range(5):
+    for _ in range(5):
         act = rng.uniform(-2, 2, (3, 1))
         obs, rew, term, trunc = sim.step(act)
         for i, e in enumerate(envs):
@@ -44,7 +44,7 @@ def test_gym_sim_equals_gymnasium_and_freezes_ended_copies():
     with pytest.raises(RuntimeError, match="reset"):
         sim.step(np.zeros((3, 1)))
     with pytest.raises(AttributeError, match="not a MuJoCo"):
-        sim.x_position
+        _ = sim.x_position
 
 
 def test_gym_sim_halfcheetah_position_and_vec_env_mask():

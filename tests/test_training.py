@@ -95,7 +95,8 @@ def test_adversarial_nan_critic_loss_at_iteration_3_keeps_checkpoint_2_and_resum
         train_adversarial(_adv(demos_path, out))
     before = (out / "checkpoint.pt").read_bytes()
     assert load_checkpoint(out)["iteration"] == 2
-    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    with open(out / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     assert [r["iteration"] for r in rows] == ["0", "1", "2"]  # flushed up to the iteration that diverged
     monkeypatch.undo()
     with pytest.raises(PomilError,

@@ -16,8 +16,9 @@ that have none (behaviour cloning, GAIL).  A policy with continuous codes
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -52,7 +53,7 @@ class TrainedPolicy:
         self._executed = executed_actions_fn(env.get("id", ""), env.get("kwargs") or {})
 
     @classmethod
-    def load(cls, path: str | Path, device: torch.device | str = "cpu") -> "TrainedPolicy":
+    def load(cls, path: str | Path, device: torch.device | str = "cpu") -> TrainedPolicy:
         device = resolve_device(device)  # a bad device is reported as one, before the file is read
         ckpt = load_checkpoint(path, map_location=device)
         try:

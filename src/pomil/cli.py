@@ -88,8 +88,8 @@ class CirclesDemosConfig:
 
 
 def cmd_demos(args: argparse.Namespace) -> int:
-    from pomil.envs.circles import make_spec
     from pomil.demos import record_circles_demos
+    from pomil.envs.circles import make_spec
 
     cfg: CirclesDemosConfig = config_from_args(CirclesDemosConfig, args)
     radius_range = None
@@ -201,7 +201,7 @@ def cmd_demos_merge(args: argparse.Namespace) -> int:
     demos.save(cfg.out)
     counts = np.bincount(demos.labels, minlength=len(demos.metadata["label_names"]))
     print(f"wrote {cfg.out}: {demos.num_episodes} episodes, unlabeled for training; labels kept for evaluation: "
-          + ", ".join(f"{n} {c}" for n, c in zip(demos.metadata["label_names"], counts)))
+          + ", ".join(f"{n} {c}" for n, c in zip(demos.metadata["label_names"], counts, strict=False)))
     return 0
 
 
@@ -431,8 +431,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from pomil.reproduce import (
-        CirclesContinuousConfig, CirclesModesConfig, CirclesReproConfig, HopperReproConfig, reproduce_circles,
-        reproduce_circles_continuous, reproduce_circles_modes, reproduce_hopper,
+        CirclesContinuousConfig,
+        CirclesModesConfig,
+        CirclesReproConfig,
+        HopperReproConfig,
+        reproduce_circles,
+        reproduce_circles_continuous,
+        reproduce_circles_modes,
+        reproduce_hopper,
     )
 
     if args.experiment == "merge":

@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import types
-import typing
-from pathlib import Path
 import math
 import re
 import sys
+import types
+import typing
+from pathlib import Path
 from typing import Any, Literal, NamedTuple, TypeVar, get_args, get_origin
 
 from pomil.errors import ConfigError, PomilError
@@ -40,7 +40,7 @@ class Interval(NamedTuple):
     text: str
 
     @classmethod
-    def parse(cls, text: str) -> "Interval":
+    def parse(cls, text: str) -> Interval:
         m = re.fullmatch(r"\s*([\[(])\s*([^,\s]+)\s*,\s*([^\]\s)]+)\s*([\])])\s*", text)
         if not m:
             raise ValueError(f"interval {text!r}: expected e.g. '(0, 1]' or '[1, inf)'")

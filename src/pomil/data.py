@@ -12,6 +12,7 @@ code from it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -128,7 +129,7 @@ class Demonstrations:
         lo, hi = self.episode_bounds[i], self.episode_bounds[i + 1]
         return self.observations[lo:hi], self.actions[lo:hi]
 
-    def padded(self, device: torch.device | str = "cpu") -> "PaddedEpisodes":
+    def padded(self, device: torch.device | str = "cpu") -> PaddedEpisodes:
         """All episodes as time-major (T_max, E, ...) tensors with a validity mask."""
         lengths = self.episode_lengths
         t_max = int(lengths.max())
@@ -171,7 +172,7 @@ class Demonstrations:
         atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
     @classmethod
-    def load(cls, path: str | Path) -> "Demonstrations":
+    def load(cls, path: str | Path) -> Demonstrations:
         """Load and validate; any problem is a DataError naming file and field."""
         path = Path(path)
         src = str(path)
@@ -231,7 +232,7 @@ class PaddedEpisodes:
                 f"actions {tuple(self.actions.shape)}, mask {tuple(self.mask.shape)}"
             )
 
-    def select(self, idx: torch.Tensor) -> "PaddedEpisodes":
+    def select(self, idx: torch.Tensor) -> PaddedEpisodes:
         return PaddedEpisodes(self.observations[:, idx], self.actions[:, idx], self.mask[:, idx])
 
 
@@ -280,10 +281,8 @@ def atomic_write(path: Path, write) -> None:
         os.replace(tmp, path)
     except BaseException as err:
         if tmp is not None:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
-            except FileNotFoundError:
-                pass
         cause = err if isinstance(err, OSError) else (rec.error if rec is not None else None)
         if cause is None:
             raise

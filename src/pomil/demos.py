@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from pomil.data import Demonstrations
-from pomil.envs.circles import CircleExperts, CirclesSpec, CirclesVecEnv, ENV_ID, DEFAULT_EXPERT_NOISE
+from pomil.envs.circles import DEFAULT_EXPERT_NOISE, ENV_ID, CircleExperts, CirclesSpec, CirclesVecEnv
 from pomil.envs.locomotion import HOPPER_ID, REWARD_KEYWORDS, task_name
 from pomil.errors import PomilError
 
@@ -41,7 +41,7 @@ def record_circles_demos(
         if not (0 < r1 <= r2 and np.isfinite(r2)):
             raise ValueError(f"radius_range must be two radii 0 < r1 <= r2, got {radius_range}")
         radii = r1 + (r2 - r1) * torch.rand(episodes, generator=gen, dtype=torch.float64)
-        own = tuple(spec.circles[int(m)].with_radius(float(r)) for m, r in zip(modes, radii))
+        own = tuple(spec.circles[int(m)].with_radius(float(r)) for m, r in zip(modes, radii, strict=True))
         experts, expert_modes = CircleExperts(replace(spec, circles=own), noise_std), torch.arange(episodes)
     obs = env.reset()
     observations, actions, states = [], [], []
@@ -197,7 +197,7 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
         raise ValueError(f"proportions: expected {len(sources)} non-negative numbers (one per file), got {proportions}")
     p = p / p.sum()
     first = sources[0].metadata
-    for name, d in zip(names, sources):
+    for name, d in zip(names, sources, strict=True):
         md = d.metadata
         for key in ("env_id", "observation_mask"):
             if md.get(key) != first.get(key):
@@ -227,7 +227,7 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
                                   "still_returns": {}}
     weight: dict[str, int] = {}
     pieces_obs, pieces_act, pieces_states, lengths, labels = [], [], [], [], []
-    for d, n, name in zip(sources, take, names):
+    for d, n, name in zip(sources, take, names, strict=True):
         if n == 0:
             continue
         # all episodes in order when a source is used whole, else a random subset
@@ -262,9 +262,10 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
     bounds = np.concatenate([[0], np.cumsum([lengths[i] for i in order])])
     metadata = {**first, **{k: v for k, v in merged_md.items() if v},
                 "label_names": label_names,
-                "source": "merge of " + "; ".join(f"{n} episodes of {name}" for name, n in zip(names, take)),
-                "merged_from": [{"file": name, "episodes": int(n),
-                                 "source": d.metadata.get("source")} for d, n, name in zip(sources, take, names)]}
+                "source": "merge of " + "; ".join(f"{n} episodes of {name}"
+                                                  for name, n in zip(names, take, strict=True)),
+                "merged_from": [{"file": name, "episodes": int(n), "source": d.metadata.get("source")}
+                                for d, n, name in zip(sources, take, names, strict=True)]}
     return Demonstrations(
         observations=np.concatenate([pieces_obs[i] for i in order]),
         actions=np.concatenate([pieces_act[i] for i in order]),

@@ -47,5 +47,5 @@ class DataError(PomilError):
         where = f"{self.source}: " if self.source else ""
         return f"{where}field '{self.field}': {self.message}"
 
-    def with_source(self, source: str) -> "DataError":
+    def with_source(self, source: str) -> DataError:
         return DataError(self.field, self.message, source)

@@ -11,9 +11,10 @@ cloning with ``policy`` set.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from pomil.errors import PomilError
 

@@ -18,9 +18,10 @@ import multiprocessing
 import os
 import time
 import traceback
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from pomil.errors import PomilError
 
@@ -100,7 +101,7 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
         return _run_local(fn, jobs, names, min(workers, total), max(1, int(cpus_per_job)), capture_errors, costs,
                           finish, results)
     if not ray:
-        for i, (job, name) in enumerate(zip(jobs, names)):
+        for i, (job, name) in enumerate(zip(jobs, names, strict=True)):
             try:
                 value, wall = _call(fn, job, None)
                 finish(i, JobResult(name, value, wall_s=wall))

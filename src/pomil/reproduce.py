@@ -30,24 +30,25 @@ import math
 import platform
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 import numpy as np
 
 from pomil.api import TrainedPolicy
 from pomil.config import check_fields, option, to_dict
 from pomil.data import Demonstrations, atomic_write
+from pomil.demos import record_circles_demos
 from pomil.envs import env_family
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import Circle, CirclesSpec, circles_preset, make_spec
 from pomil.envs.locomotion import HOPPER_EXPERTS, demo_recording
 from pomil.errors import PomilError
-from pomil.learners import ADVERSARIAL, LEARNERS
-from pomil.eval.plots import figure1
 from pomil.eval.circles import evaluate_circles
-from pomil.demos import record_circles_demos
+from pomil.eval.plots import figure1
+from pomil.learners import ADVERSARIAL, LEARNERS
 from pomil.training import write_json
 
 
@@ -174,7 +175,7 @@ def markdown_table(results: dict[str, Any]) -> str:
     ]
     for name, r in results["learners"].items():
         s = r["summary"]
-        fmt = lambda k, p=2: f"{s[k][0]:.{p}f} ± {s[k][1]:.{p}f}"  # noqa: E731
+        fmt = lambda k, p=2, s=s: f"{s[k][0]:.{p}f} ± {s[k][1]:.{p}f}"  # noqa: E731
         wins = sum(modes_success(run) for run in r["runs"])
         lines.append(f"| {name} | {wins}/{len(r['runs'])} | {fmt('mean_purity')} | {fmt('min_purity')} | "
                      f"{fmt('modes_covered', 1)} | "
@@ -282,7 +283,7 @@ def _run_all(cfg: Any, job: Callable[..., dict[str, Any]], report: Callable,
     results = run_jobs(job, [(cfg, name, seed) for name, seed in keys], [f"[{n}] seed {s}" for n, s in keys],
                        ray=cfg.ray, address=cfg.ray_address or None, capture_errors=False, on_done=report,
                        costs=costs, workers=workers)
-    return {key: r.value for key, r in zip(keys, results)}
+    return {key: r.value for key, r in zip(keys, results, strict=True)}
 
 
 def plot_from_rollouts(rollouts_path: Path, figure_path: Path) -> None:
@@ -350,7 +351,8 @@ def modes_table(results: dict[str, Any]) -> str:
              "|---|---|---|---|---|---|---|---|---|"]
     for case, r in results["cases"].items():
         runs = r["runs"]
-        ms = lambda k, p=2: f"{np.mean([x[k] for x in runs]):.{p}f} ± {np.std([x[k] for x in runs]):.{p}f}"  # noqa: E731
+        ms = lambda k, p=2, runs=runs: (  # noqa: E731
+            f"{np.mean([x[k] for x in runs]):.{p}f} ± {np.std([x[k] for x in runs]):.{p}f}")
         lines.append(f"| {case} | {r['modes']} | {sum(x['success'] for x in runs)}/{len(runs)} | {ms('min_purity')} | "
                      f"{ms('mean_purity')} | {ms('modes_covered', 1)} | {ms('nmi')} | {ms('overall_none_share')} | "
                      f"{np.mean(r['wall_s']):.0f} |")
@@ -451,7 +453,8 @@ def _warm_start_value(csv_path: Path, key: str) -> float | None:
 
     if not csv_path.exists():
         return None
-    rows = [r for r in csv.DictReader(open(csv_path, newline="")) if r.get("iteration") == "0" and r.get(key)]
+    with open(csv_path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("iteration") == "0" and r.get(key)]
     return float(rows[0][key]) if rows else None
 
 
@@ -459,7 +462,7 @@ def continuous_table(results: dict[str, Any]) -> str:
     runs = results["runs"]
     lines = ["| seed | Spearman rho(code, radius) | after the warm start | median radius per code value, low .. high "
              "| success | wall s |", "|---|---|---|---|---|---|"]
-    for r, wall in zip(runs, results["wall_s"]):
+    for r, wall in zip(runs, results["wall_s"], strict=True):
         lo, hi = r["radius_covered"]
         warm = "-" if r.get("warm_start_spearman") is None else f"{r['warm_start_spearman']:+.3f}"
         lines.append(f"| {r['train_seed']} | {r['spearman']:+.3f} | {warm} | {lo:.2f} .. {hi:.2f} | "
@@ -609,7 +612,10 @@ def _curve(run_dir: Path, tasks: list[str]) -> dict[str, list[float]]:
     import csv
 
     path = run_dir / "metrics.csv"
-    rows = [r for r in csv.DictReader(open(path, newline=""))] if path.exists() else []
+    rows: list[dict[str, str]] = []
+    if path.exists():
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
     rows = [r for r in rows if r.get("eval/env_steps")]
     curve = {"env_steps": [float(r["eval/env_steps"]) for r in rows]}
     for t in tasks:
@@ -717,7 +723,7 @@ def reproduce_hopper(cfg: HopperReproConfig) -> dict[str, Any]:
     done = _run_all(cfg, _tasks_job, report)
     for name in cfg.learners:
         runs = [done[name, seed]["metrics"] for seed in seed_list(cfg)]
-        for seed, r in zip(seed_list(cfg), runs):
+        for seed, r in zip(seed_list(cfg), runs, strict=True):
             TrainedPolicy.load(r["checkpoint"]).save(out / "policies" / f"{name}-seed{seed}.pt")
         results["learners"][name] = {"runs": runs,
                                      "wall_s": [done[name, seed]["wall_s"] for seed in seed_list(cfg)],

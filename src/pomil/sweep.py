@@ -128,7 +128,7 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
         raise PomilError(f"{config_path}: 'demos' is required (the demonstrations every run imitates)")
     base["demos"] = str(Path(base["demos"]).resolve())
     grid = parse_grid(grid_entries)
-    settings = [dict(zip(grid, combo)) for combo in itertools.product(*grid.values())] or [{}]
+    settings = [dict(zip(grid, combo, strict=True)) for combo in itertools.product(*grid.values())] or [{}]
     for s in settings:  # every setting must make a valid config before anything runs
         trainer.make_config({**base, **s}, source=f"{config_path} + {setting_name(s)}")
     out = Path(cfg.out).resolve()
@@ -249,8 +249,8 @@ def _figure(data: dict[str, Any], path: Path) -> None:
             figure1(panels, path)
     elif kinds == {"tasks"}:
         from pomil.data import Demonstrations
-        from pomil.eval.tasks import reference_of
         from pomil.eval.plots import learning_curves
+        from pomil.eval.tasks import reference_of
 
         demos = Demonstrations.load(data["base"]["demos"])
         learners = {s: {"curves": [r["curve"] for n, r in ok.items() if n.startswith(f"{s} seed")],

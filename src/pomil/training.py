@@ -14,6 +14,7 @@ A run directory holds::
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fcntl
 import io
@@ -24,10 +25,11 @@ import random
 import socket
 import sys
 import time
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -131,7 +133,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     atomic_write(Path(path), lambda f: torch.save(payload, f))
 
 
-def save_run_checkpoint(path: str | Path, logger: "RunLogger", guard: "DivergenceGuard", iteration: int,
+def save_run_checkpoint(path: str | Path, logger: RunLogger, guard: DivergenceGuard, iteration: int,
                         payload: dict[str, Any]) -> None:
     """A run's checkpoint of ``iteration``: the metrics flushed first, so that a resumed run's log
     reads as one; the guard told, so that a later divergence names it."""
@@ -239,7 +241,7 @@ def resume_run(
             hypers = [{key: v for key, v in g.items() if key != "params"} for g in opt.param_groups]
             opt.load_state_dict(ckpt["optimizers"][k])
             check_optimizer_state(opt)
-            for g, h in zip(opt.param_groups, hypers):
+            for g, h in zip(opt.param_groups, hypers, strict=True):
                 for key in set(g) - set(h) - {"params"}:
                     del g[key]
                 g.update(h)
@@ -384,7 +386,7 @@ class RunLock:
         self.path = Path(run_dir) / "run.lock"
         self._fd: int | None = None
 
-    def __enter__(self) -> "RunLock":
+    def __enter__(self) -> RunLock:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -436,10 +438,8 @@ class RunLock:
     def release(self) -> None:
         if self._fd is None:
             return
-        try:
+        with contextlib.suppress(OSError):
             os.unlink(self.path)
-        except OSError:
-            pass
         os.close(self._fd)  # closing drops the flock
         self._fd = None
 
@@ -562,7 +562,7 @@ class RunLoop:
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.carried: dict[str, Any] = {}
 
-    def __enter__(self) -> "RunLoop":
+    def __enter__(self) -> RunLoop:
         return self
 
     def __exit__(self, *exc: Any) -> None:

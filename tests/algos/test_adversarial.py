@@ -2,10 +2,10 @@ import pytest
 import torch
 
 from pomil.algos.adversarial import AdversarialConfig, build_modules, critic_loss, posterior_loss, train_adversarial
-from pomil.rl.collect import collect
 from pomil.cli import main
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.nn import heads
+from pomil.rl.collect import collect
 from pomil.rl.storage import Rollout
 from pomil.training import load_checkpoint
 
@@ -339,7 +339,7 @@ def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
         a, c = losses(True, mixture), losses(False, mixture)
         torch.testing.assert_close(a[0], c[0])
         torch.testing.assert_close(a[1], c[1])
-        for ga, gc in zip(a[2], c[2]):
+        for ga, gc in zip(a[2], c[2], strict=True):
             torch.testing.assert_close(ga, gc, rtol=1e-4, atol=1e-6)
 
 

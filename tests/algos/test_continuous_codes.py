@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from pomil.algos.adversarial import (AdversarialConfig, build_modules, posterior_loss, rewards,
-                                     train_adversarial)
+from pomil.algos.adversarial import AdversarialConfig, build_modules, posterior_loss, rewards, train_adversarial
 from pomil.algos.bc import EpisodeCodes, principal_components
 from pomil.api import TrainedPolicy
 from pomil.demos import record_circles_demos

@@ -12,10 +12,17 @@ import pytest
 import torch
 
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
-from pomil.algos.num_codes import (NumCodesChoice, choose_num_codes, classification_log_likelihood,
-                                   code_posterior_entropy, heldout_score, heldout_split, mixture_log_likelihood,
-                                   paired_standard_error,
-                                   search_num_codes)
+from pomil.algos.num_codes import (
+    NumCodesChoice,
+    choose_num_codes,
+    classification_log_likelihood,
+    code_posterior_entropy,
+    heldout_score,
+    heldout_split,
+    mixture_log_likelihood,
+    paired_standard_error,
+    search_num_codes,
+)
 from pomil.cli import main
 from pomil.config import from_dict, load_config_file, to_dict
 from pomil.data import PaddedEpisodes
@@ -126,7 +133,7 @@ def episodes(actions: list[list[list[float]]], lengths: list[int]) -> PaddedEpis
 
 
 def gaussian_ll(actions: list[list[float]], mean: list[float]) -> float:
-    return sum(-0.5 * sum((x - m) ** 2 for x, m in zip(a, mean)) - 0.5 * len(a) * math.log(2 * math.pi)
+    return sum(-0.5 * sum((x - m) ** 2 for x, m in zip(a, mean, strict=True)) - 0.5 * len(a) * math.log(2 * math.pi)
                for a in actions)
 
 
@@ -138,7 +145,7 @@ def test_heldout_score_is_the_classification_likelihood_per_step_of_a_known_mixt
     lengths = [2, 3, 3]
     data = episodes(eps, lengths)
     got = heldout_score(mode_policy(means), data, shift_actions(data.actions))
-    ll = torch.tensor([[gaussian_ll(ep[:n], mean) for ep, n in zip(eps, lengths)] for mean in means])
+    ll = torch.tensor([[gaussian_ll(ep[:n], mean) for ep, n in zip(eps, lengths, strict=True)] for mean in means])
     q = torch.softmax(ll, 0)
     expected = ((q * (ll - math.log(2))).sum() / sum(lengths)).item()
     assert got.score == pytest.approx(expected, rel=1e-5)

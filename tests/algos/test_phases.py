@@ -7,9 +7,18 @@ import pytest
 import torch
 
 from pomil.algos.adversarial import (
-    FAST_WARM_START, AdversarialConfig, AdversarialRun, BatchSampler, absorbing_bootstrap, build_modules,
-    build_optimizers, clone_demonstrations,
-    update_critic, update_policy, update_posterior, with_rewards,
+    FAST_WARM_START,
+    AdversarialConfig,
+    AdversarialRun,
+    BatchSampler,
+    absorbing_bootstrap,
+    build_modules,
+    build_optimizers,
+    clone_demonstrations,
+    update_critic,
+    update_policy,
+    update_posterior,
+    with_rewards,
 )
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.nn.policy import shift_actions
@@ -40,7 +49,7 @@ def params(net):
 
 
 def changed(before, net):
-    return any(not torch.equal(a, b) for a, b in zip(before, net.parameters()))
+    return any(not torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))
 
 
 def test_collect_returns_a_named_rollout(demos):

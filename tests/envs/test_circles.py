@@ -8,7 +8,13 @@ from gymnasium.utils.env_checker import check_env
 
 import pomil  # noqa: F401  (registers the env)
 from pomil.envs.circles import (
-    Circle, CircleExperts, CirclesEnv, CirclesVecEnv, classify_modes, distance_to_circles, make_spec,
+    Circle,
+    CircleExperts,
+    CirclesEnv,
+    CirclesVecEnv,
+    classify_modes,
+    distance_to_circles,
+    make_spec,
 )
 
 
@@ -186,7 +192,7 @@ def test_radius_range_demos_follow_their_own_circle_with_the_same_tangent_and_di
     d = record_circles_demos(make_spec("one", 5.0), 40, noise_std=0.0, seed=1, radius_range=(3.0, 7.0))
     radii = np.asarray(d.metadata["episode_radii"])
     assert d.metadata["radius_range"] == [3.0, 7.0] and radii.shape == (40,)
-    assert 3.0 <= radii.min() and radii.max() <= 7.0 and radii.max() - radii.min() > 2.5
+    assert radii.min() >= 3.0 and radii.max() <= 7.0 and radii.max() - radii.min() > 2.5
     pos = d.states.reshape(40, 33, 2)[:, 1:]
     centres, fitted = fit_circles(pos)
     np.testing.assert_allclose(fitted, radii, rtol=1e-4)  # noise-free experts stay exactly on their circle

@@ -9,13 +9,20 @@ import pytest
 import torch
 
 from pomil.envs import (
-    FAMILIES, default_num_codes, ends_on_failure, env_dims, env_family, evaluation_kind, executed_actions_fn,
-    make_vec_env, state_dim,
+    FAMILIES,
+    default_num_codes,
+    ends_on_failure,
+    env_dims,
+    env_family,
+    evaluation_kind,
+    executed_actions_fn,
+    make_vec_env,
+    state_dim,
 )
+from pomil.envs.batch import GymSim
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import CirclesVecEnv
 from pomil.envs.locomotion import HOPPER_ID, HopperSim
-from pomil.envs.batch import GymSim
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "pomil"
 

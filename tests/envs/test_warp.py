@@ -140,7 +140,7 @@ def test_one_step_from_the_same_state_agrees_within_float32(env_id):
         sim.set_state(torch.as_tensor(qpos), torch.as_tensor(qvel))
         act = rng.uniform(-1.0, 1.0, (n, sim.act_dim))
         obs, rew, _, _ = sim.step(torch.as_tensor(act))
-        ref = [e.step(a) for e, a in zip(envs, act)]
+        ref = [e.step(a) for e, a in zip(envs, act, strict=True)]
         obs_err = max(obs_err, float(np.abs(obs.numpy() - np.stack([r[0] for r in ref])).max()))
         rew_err = max(rew_err, float(np.abs(rew.numpy() - np.array([r[1] for r in ref])).max()))
     assert obs_err < ONE_STEP_OBS_ATOL[env_id] and rew_err < ONE_STEP_REWARD_ATOL, (obs_err, rew_err)
@@ -201,5 +201,6 @@ def test_infogail_pomdp_trains_one_iteration_on_warp_physics(tmp_path):
               "progress": False, "sim": "warp"}
     ckpt = train_adversarial(from_dict(AdversarialConfig, values, "test"))
     assert load_checkpoint(ckpt)["env_steps"] == 4 * 128  # paper setting: 128 steps per episode
-    row = list(csv.DictReader(open(tmp_path / "metrics.csv", newline="")))[-1]
+    with open(tmp_path / "metrics.csv", newline="") as f:
+        row = list(csv.DictReader(f))[-1]
     assert np.isfinite(float(row["env/true_return"]))

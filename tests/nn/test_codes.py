@@ -3,8 +3,15 @@ import math
 import pytest
 import torch
 
-from pomil.nn.codes import (LOG_STD_RANGE, code_log_likelihood, draw_codes, prior_grid, prior_quantile, sample_prior,
-                            spread_as_prior)
+from pomil.nn.codes import (
+    LOG_STD_RANGE,
+    code_log_likelihood,
+    draw_codes,
+    prior_grid,
+    prior_quantile,
+    sample_prior,
+    spread_as_prior,
+)
 
 
 def test_continuous_code_log_likelihood_is_the_diagonal_gaussians_exact_value():

@@ -27,7 +27,7 @@ def test_gae_hand_computed_with_truncation_and_termination():
     d0 = 1.0 + 0.5 * 5.0 - 4.0
     expected = [d0 + gamma * lam * d1, d1, d2]
     assert adv[:, 0].tolist() == pytest.approx(expected)
-    assert ret[:, 0].tolist() == pytest.approx([e + b for e, b in zip(expected, [4.0, 5.0, 6.0])])
+    assert ret[:, 0].tolist() == pytest.approx([e + b for e, b in zip(expected, [4.0, 5.0, 6.0], strict=True)])
 
 
 def test_gae_lambda_one_gives_discounted_returns_minus_values():

@@ -38,30 +38,40 @@ import copy
 import math
 import sys
 import time
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Iterator, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import (EpisodeCodes, MixtureAssignment, bc_step, demo_batch, demo_nll,
-                            episodes_within, first_step_starts, fit_log_std, most_likely_codes)
+from pomil.algos.bc import (
+    EpisodeCodes,
+    MixtureAssignment,
+    bc_step,
+    demo_batch,
+    demo_nll,
+    episodes_within,
+    first_step_starts,
+    fit_log_std,
+    most_likely_codes,
+)
 from pomil.algos.num_codes import NumCodesChoice, search_num_codes
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs, resolved
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
-from pomil.nn.encoders import OBS_DELTA_HELP, PREV_ACTION_HELP, fit_input_scale
 from pomil.envs import SIM_HELP, default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import ConfigError, PomilError
 from pomil.nn import heads
 from pomil.nn.codes import code_log_likelihood, gaussian_params, sample_prior
+from pomil.nn.encoders import OBS_DELTA_HELP, PREV_ACTION_HELP, fit_input_scale
 from pomil.nn.heads import BeliefHead
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
-from pomil.rl.gae import gae
 from pomil.rl.collect import collect
+from pomil.rl.gae import gae
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import DivergenceGuard, RunLoop, load_checkpoint, lr_hint, native_bfloat16, precision_context
@@ -339,7 +349,7 @@ def side_by_side(unroll: Callable[..., torch.Tensor], first: tuple[torch.Tensor,
     up to rounding; one pass with twice the columns is cheaper on a CPU than two."""
     if first[0].shape[0] != second[0].shape[0]:
         return unroll(*first), unroll(*second)
-    out = unroll(*(torch.cat(pair, dim=1) for pair in zip(first, second)))
+    out = unroll(*(torch.cat(pair, dim=1) for pair in zip(first, second, strict=True)))
     return out[:, :first[0].shape[1]], out[:, first[0].shape[1]:]
 
 
@@ -467,7 +477,7 @@ def critic_loss(
             f_i = score(obs_i, prev_i, act_i, e_starts[:t, :b])
         inputs = (obs_i, prev_i, act_i)
         grads = torch.autograd.grad(f_i.sum(), inputs, create_graph=True, allow_unused=True)  # MLPs ignore prev
-        norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs)],
+        norm = torch.cat([g if g is not None else torch.zeros_like(x) for g, x in zip(grads, inputs, strict=True)],
                          dim=-1).norm(dim=-1)
         gp = ((norm - 1) ** 2).mean()
         loss = loss + gp_weight * gp

@@ -33,8 +33,9 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import torch
 
@@ -171,7 +172,7 @@ class NumCodesChoice:
                    if self.episode_scores else {})}
 
     @classmethod
-    def from_record(cls, record: Any) -> "NumCodesChoice":
+    def from_record(cls, record: Any) -> NumCodesChoice:
         """The choice that :meth:`record` wrote; ValueError when it is missing or damaged."""
         if not isinstance(record, dict):
             raise ValueError("no record")

@@ -18,8 +18,9 @@ it asks :func:`env_family` (or the functions below, which do).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Literal
 
 import gymnasium as gym
 import torch

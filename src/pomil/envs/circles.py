@@ -28,8 +28,9 @@ same code with N = 1, registered as ``pomil/Circles-v0``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, Sequence
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
@@ -53,7 +54,7 @@ class Circle:
     """+1 anti-clockwise, -1 clockwise."""
 
     @classmethod
-    def through_origin(cls, angle_deg: float, radius: float, direction: int) -> "Circle":
+    def through_origin(cls, angle_deg: float, radius: float, direction: int) -> Circle:
         """The circle of ``radius`` whose centre lies at ``angle_deg`` degrees from the x axis.
 
         >>> Circle.through_origin(90, 5.0, 1)
@@ -75,7 +76,7 @@ class Circle:
             )
 
 
-    def with_radius(self, radius: float) -> "Circle":
+    def with_radius(self, radius: float) -> Circle:
         """The circle of ``radius`` through the origin with the same tangent there and direction.
 
         >>> Circle((0.0, 5.0), 5.0, 1).with_radius(3.0)
@@ -137,7 +138,7 @@ class CirclesSpec:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "CirclesSpec":
+    def from_dict(cls, d: dict[str, Any]) -> CirclesSpec:
         d = dict(d)
         if "circles" in d and d["circles"] is not None:
             d["circles"] = tuple(

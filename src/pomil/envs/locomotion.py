@@ -288,7 +288,7 @@ class HopperSim:
         if seed is not None:
             self._rngs = [np_random(seed + i)[0] for i in range(self.num_envs)]
         s = self.kw["reset_noise_scale"]
-        for d, rng in zip(self.data, self._rngs):
+        for d, rng in zip(self.data, self._rngs, strict=True):
             mujoco.mj_resetData(self.model, d)
             d.qpos[:] = self.init_qpos + rng.uniform(low=-s, high=s, size=self.model.nq)
             d.qvel[:] = self.init_qvel + rng.uniform(low=-s, high=s, size=self.model.nv)

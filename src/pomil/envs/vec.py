@@ -9,7 +9,8 @@ learner's partial view).
 from __future__ import annotations
 
 import json
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ def set_generator_states(rngs: Sequence[np.random.Generator], states: Any) -> No
     """Put :func:`generator_states`' texts back into ``rngs``; ValueError when they do not fit."""
     if not isinstance(states, list) or len(states) != len(rngs) or not all(isinstance(x, str) for x in states):
         raise ValueError(f"the environment's generator states are not {len(rngs)} texts")
-    for rng, text in zip(rngs, states):
+    for rng, text in zip(rngs, states, strict=True):
         try:
             rng.bit_generator.state = json.loads(text)
         except (TypeError, ValueError, KeyError) as err:

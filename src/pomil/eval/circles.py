@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from pomil.api import TrainedPolicy
-from pomil.envs.circles import ENV_ID, CirclesSpec, CirclesVecEnv, DEFAULT_NONE_THRESHOLD, classify_modes, fit_circles
+from pomil.envs.circles import DEFAULT_NONE_THRESHOLD, ENV_ID, CirclesSpec, CirclesVecEnv, classify_modes, fit_circles
 from pomil.errors import PomilError
 from pomil.eval.metrics import mode_metrics, spearman
 from pomil.nn.codes import prior_grid

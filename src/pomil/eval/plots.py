@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -39,7 +39,7 @@ def figure1(
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.8), squeeze=False)
-    for ax, (title, pos, groups, name) in zip(axes[0], panels):
+    for ax, (title, pos, groups, name) in zip(axes[0], panels, strict=True):
         _panel(ax, np.asarray(pos), np.asarray(groups), title, name, max_per_group)
     fig.tight_layout()
     suffix = Path(path).suffix.lstrip(".") or "png"
@@ -72,7 +72,7 @@ def curves_figure(results: dict):
     tasks = results["tasks"]
     fig, axes = plt.subplots(1, len(tasks), figsize=(6.5 * len(tasks), 5), squeeze=False)
     colours = COLOURS + ["tab:cyan", "tab:gray", "black", "gold"]
-    for ax, task in zip(axes[0], tasks):
+    for ax, task in zip(axes[0], tasks, strict=True):
         for i, (name, r) in enumerate(results["learners"].items()):
             colour = colours[i % len(colours)]
             curves = [c for c in r["curves"] if c["env_steps"]]

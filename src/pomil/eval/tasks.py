@@ -148,13 +148,13 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
             per_pair.setdefault(f"code{c}", {})[task] = s
             progress[c, j] = s["progress"]
     assigned = match_codes(progress)
-    per_task = {task: {"code": c, **per_pair[f"code{c}"][task]} for task, c in zip(tasks, assigned)}
+    per_task = {task: {"code": c, **per_pair[f"code{c}"][task]} for task, c in zip(tasks, assigned, strict=True)}
     summary = {f"min_{m}": min(per_task[t][m] for t in tasks) for m in ("normalised_return", "progress",
                                                                         "displacement_ratio")}
     behaviour = None
     if "expert_speed" in reference and not np.isnan(np.concatenate(speeds)).any():
         behaviour = speed_behaviour(np.concatenate(speeds), np.tile(codes, len(tasks)), reference["expert_speed"], k)
-        for task, c in zip(tasks, assigned):
+        for task, c in zip(tasks, assigned, strict=True):
             per_task[task]["on_task_share"] = behaviour[f"code{c}"]["shares"][task]
             per_task[task]["speed_error"] = abs(behaviour[f"code{c}"]["mean_speed"] - reference["expert_speed"][task])
         summary.update(min_on_task_share=min(per_task[t]["on_task_share"] for t in tasks),

@@ -13,7 +13,7 @@ rollout can store per episode.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -36,7 +36,7 @@ def unroll_by_chunks(run: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Ten
     borders = [0, *cut, steps]
     h = h0
     outs = []
-    for a, b in zip(borders[:-1], borders[1:]):
+    for a, b in zip(borders[:-1], borders[1:], strict=True):
         out, h = run(xs[a:b], _reset(h, starts[a]))
         outs.append(out)
     return torch.cat(outs, dim=0), h

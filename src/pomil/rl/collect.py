@@ -5,8 +5,9 @@ Shared by every on-policy loop (adversarial learners, PPO experts).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Callable, Iterator, NamedTuple
+from typing import NamedTuple
 
 import torch
 

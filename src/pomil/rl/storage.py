@@ -13,8 +13,8 @@ Three ways to cut a rollout into minibatches:
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, fields, replace
-from typing import Iterator
 
 import torch
 
@@ -84,15 +84,15 @@ class Rollout:
     def num_envs(self) -> int:
         return int(self.starts.shape[1])
 
-    def with_(self, **changes: torch.Tensor) -> "Rollout":
+    def with_(self, **changes: torch.Tensor) -> Rollout:
         return replace(self, **changes)
 
-    def columns(self, idx: torch.Tensor) -> "Rollout":
+    def columns(self, idx: torch.Tensor) -> Rollout:
         """Whole sequences of the environments in ``idx``, with their initial states."""
         return self._gather(torch.arange(self.num_steps, device=idx.device).unsqueeze(1).expand(-1, len(idx)), idx,
                             self.h0_policy[idx], self.h0_value[idx], zero_first=False)
 
-    def windows(self, length: int, count: int, generator: torch.Generator) -> "Rollout":
+    def windows(self, length: int, count: int, generator: torch.Generator) -> Rollout:
         """``count`` random windows of ``length`` steps, hidden state zeroed at their start."""
         t_idx, env = window_index(self.num_steps, self.num_envs, length, count, generator)
         dev = self.starts.device
@@ -100,7 +100,7 @@ class Rollout:
                             zero_first=True)
 
     def _gather(self, t_idx: torch.Tensor, env: torch.Tensor, h0p: torch.Tensor, h0v: torch.Tensor,
-                zero_first: bool) -> "Rollout":
+                zero_first: bool) -> Rollout:
         e_idx = env.unsqueeze(0).expand_as(t_idx)
         out = {}
         for f in fields(self):
@@ -116,19 +116,19 @@ class Rollout:
             out["starts"] = starts
         return Rollout(**out, h0_policy=h0p, h0_value=h0v)
 
-    def sequence_batches(self, num_batches: int, generator: torch.Generator) -> Iterator["Rollout"]:
+    def sequence_batches(self, num_batches: int, generator: torch.Generator) -> Iterator[Rollout]:
         perm = torch.randperm(self.num_envs, generator=generator).to(self.starts.device)
         for chunk in perm.chunk(min(num_batches, self.num_envs)):
             yield self.columns(chunk)
 
-    def window_batches(self, num_batches: int, length: int, generator: torch.Generator) -> Iterator["Rollout"]:
+    def window_batches(self, num_batches: int, length: int, generator: torch.Generator) -> Iterator[Rollout]:
         # As many windows in total as there are steps / length, so one epoch sees
         # about as many steps as a pass over whole sequences.
         per_batch = max(1, (self.num_steps * self.num_envs) // (length * num_batches))
         for _ in range(num_batches):
             yield self.windows(length, per_batch, generator)
 
-    def step_batches(self, num_batches: int, generator: torch.Generator) -> Iterator["Rollout"]:
+    def step_batches(self, num_batches: int, generator: torch.Generator) -> Iterator[Rollout]:
         """Every step once, shuffled, in ``num_batches`` (1, B) batches (feed-forward networks only)."""
         dev = self.starts.device
         perm = torch.randperm(self.num_steps * self.num_envs, generator=generator).to(dev)
