@@ -23,6 +23,7 @@ from pomil.envs.batch import GymSim
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.circles import CirclesVecEnv
 from pomil.envs.locomotion import HOPPER_ID, HopperSim
+from pomil.envs.vec import BatchedEnv, BatchedSim
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "pomil"
 
@@ -38,6 +39,8 @@ def test_each_id_is_run_by_its_family(env_id, family, sim, dims, states):
     env = make_vec_env(env_id, kwargs, 2)
     try:
         assert isinstance(env, CirclesVecEnv) if sim is None else isinstance(env.sim, sim)
+        assert isinstance(env, BatchedEnv) and (sim is None or isinstance(env.sim, BatchedSim))
+        assert (env.obs_dim, env.act_dim) == dims
     finally:
         if sim is not None:
             env.close()

@@ -172,6 +172,19 @@ def test_x_position_and_state_are_views_of_the_simulation():
     assert torch.equal(sim.x_position, sim.qpos[:, 0]) and not torch.equal(sim.x_position, x0)
 
 
+def test_warp_sim_and_env_are_the_batched_interfaces_and_resume_their_generators():
+    from pomil.envs.vec import BatchedEnv, BatchedSim
+    from pomil.envs.warp import WarpVecEnv
+
+    env = WarpVecEnv(WarpSim(HOPPER_ID, 2, hopper_kwargs("forward", "paper")), seed=3)
+    assert isinstance(env.sim, BatchedSim) and isinstance(env, BatchedEnv)
+    env.reset()
+    state = env.state_dict()
+    copy = WarpVecEnv(WarpSim(HOPPER_ID, 2, hopper_kwargs("forward", "paper")), seed=9)
+    copy.load_state_dict(state)
+    assert torch.equal(copy.reset(), env.reset())
+
+
 def test_rejects_what_it_cannot_run():
     with pytest.raises(ValueError, match="runs .*Hopper-v5.*not 'Ant-v5'"):
         WarpSim("Ant-v5", 2)

@@ -28,6 +28,7 @@ import torch
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
 from pomil.envs.locomotion import HOPPER_ID, HOPPER_SPEED_ID
 from pomil.envs.locomotion import ends_on_failure as _gym_ends_on_failure
+from pomil.envs.vec import BatchedEnv
 
 if CIRCLES_ID not in gym.registry:
     gym.register(id=CIRCLES_ID, entry_point="pomil.envs.circles:CirclesEnv")
@@ -179,7 +180,8 @@ SIM_HELP = ("physics of the training rollouts: cpu (MuJoCo on the CPU cores) or 
 
 
 def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
-                 observation_mask: Sequence[int] | None = None, seed: int | None = None, sim: str = "cpu"):
+                 observation_mask: Sequence[int] | None = None, seed: int | None = None,
+                 sim: str = "cpu") -> BatchedEnv:
     """The batched (torch) environment training uses for ``env_id``.
 
     ``reset() -> obs (N, d)``; ``step(actions) -> (obs, reward, terminated,

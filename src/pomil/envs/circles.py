@@ -209,6 +209,17 @@ class CirclesVecEnv:
     def _obs(self) -> torch.Tensor:
         return self._history.reshape(self.num_envs, -1).clone()
 
+    @property
+    def obs_dim(self) -> int:
+        return self.spec.obs_dim
+
+    @property
+    def act_dim(self) -> int:
+        return self.spec.act_dim
+
+    def close(self) -> None:
+        """Nothing to release (the :class:`pomil.envs.vec.BatchedEnv` interface)."""
+
     def state_dict(self) -> dict[str, Any]:
         """Nothing to keep across a resume: every episode starts at the origin."""
         return {}

@@ -10,10 +10,55 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
+
+
+@runtime_checkable
+class BatchedSim(Protocol):
+    """A batched simulator: N copies of one task stepped together, NumPy in and out
+    (:class:`pomil.envs.locomotion.HopperSim`, :class:`pomil.envs.batch.GymSim`) or torch on a device
+    (:class:`pomil.envs.warp.WarpSim`).  Copy i of ``reset(seed)`` is seeded ``seed + i``; ``reset()`` goes on
+    with each copy's generator, whose states :meth:`rng_states` gives as text for a checkpoint."""
+
+    num_envs: int
+    obs_dim: int
+    act_dim: int
+
+    def reset(self, seed: int | None = None) -> Any: ...
+
+    def step(self, actions: Any) -> tuple[Any, Any, Any, Any]: ...
+
+    def rng_states(self) -> list[str]: ...
+
+    def set_rng_states(self, states: list[str]) -> None: ...
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class BatchedEnv(Protocol):
+    """What every learner steps: N episodes at once as torch tensors on its device
+    (:class:`TorchVecEnv` and :class:`pomil.envs.warp.WarpVecEnv` over a :class:`BatchedSim`, and
+    :class:`pomil.envs.circles.CirclesVecEnv`).  ``reset() -> obs (N, obs_dim)``; ``step(actions (N, act_dim))
+    -> (obs, reward, terminated, truncated)``; ``state_dict`` / ``load_state_dict``: what a checkpoint keeps
+    so that a resumed run's episodes start where the uninterrupted run's would have."""
+
+    num_envs: int
+    obs_dim: int
+    act_dim: int
+
+    def reset(self) -> torch.Tensor: ...
+
+    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+    def close(self) -> None: ...
 
 
 def generator_states(rngs: Sequence[np.random.Generator]) -> list[str]:
