@@ -474,11 +474,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 # -------------------------------------------------------------------- parser
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="pomil",
-                                description="Multi-modal imitation learning in partially observable environments.")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_demos(sub: argparse._SubParsersAction) -> None:
+    """``pomil demos``: circles, hopper, record, import-minari, export-minari, merge."""
     demos = sub.add_parser("demos", help="record expert demonstrations")
     demos_sub = demos.add_subparsers(dest="env", required=True, metavar="ENV")
     dc = demos_sub.add_parser("circles", help="scripted circle experts, equal numbers per mode")
@@ -513,6 +510,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(dm, MergeDemosConfig)
     dm.set_defaults(func=cmd_demos_merge)
 
+
+def _add_experts(sub: argparse._SubParsersAction) -> None:
+    """``pomil experts``: hopper, train (any Gymnasium id)."""
     from pomil.algos.expert import ExpertConfig
 
     ex = sub.add_parser("experts", help="train a PPO expert (MLP policy, pomil's PPO) on a task's reward")
@@ -526,6 +526,9 @@ def build_parser() -> argparse.ArgumentParser:
         eh.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         eh.set_defaults(func=cmd_experts)
 
+
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    """``pomil train ALGO``: a subcommand per learner of the learner table."""
     train = sub.add_parser("train", help="train a learner on demonstrations")
     train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
     from pomil.learners import LEARNERS
@@ -538,6 +541,9 @@ def build_parser() -> argparse.ArgumentParser:
         tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         tp.set_defaults(func=cmd_train)
 
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    """``pomil evaluate``."""
     ev = sub.add_parser("evaluate",
                         help="roll a checkpoint out: mode metrics (circles) or per-task scores (other tasks)")
     ev.add_argument("checkpoint", help="checkpoint.pt (or its run directory)")
@@ -555,6 +561,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", action="store_true", help="print machine-readable JSON")
     ev.set_defaults(func=cmd_evaluate)
 
+
+def _add_plot(sub: argparse._SubParsersAction) -> None:
+    """``pomil plot``."""
     pl = sub.add_parser("plot", help="Figure-1-style trajectories: experts and policies coloured by code")
     pl.add_argument("checkpoints", nargs="*", help="checkpoints to roll out, one panel each")
     pl.add_argument("--demos", help="demonstrations .npz: adds a panel of expert trajectories coloured by mode")
@@ -564,6 +573,9 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--deterministic", action="store_true", help="act with the policy mean")
     pl.set_defaults(func=cmd_plot)
 
+
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    """``pomil sweep``."""
     from pomil.sweep import SweepConfig
 
     sw = sub.add_parser("sweep", help="one training config over seeds and a grid of settings, in parallel on Ray")
@@ -574,6 +586,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(sw, SweepConfig)
     sw.set_defaults(func=cmd_sweep)
 
+
+def _add_reproduce(sub: argparse._SubParsersAction) -> None:
+    """``pomil reproduce``: each experiment, and merge."""
     from pomil.reproduce import CirclesContinuousConfig, CirclesModesConfig, CirclesReproConfig, HopperReproConfig
 
     rp = sub.add_parser("reproduce", help="run a paper experiment end to end")
@@ -609,6 +624,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="copy every run's policy into OUT/policies (each must exist); --no-policies joins the "
                          "metrics alone, for results committed without policies (default: %(default)s)")
     rj.set_defaults(func=cmd_reproduce)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pomil",
+                                description="Multi-modal imitation learning in partially observable environments.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_demos(sub)
+    _add_experts(sub)
+    _add_train(sub)
+    _add_evaluate(sub)
+    _add_plot(sub)
+    _add_sweep(sub)
+    _add_reproduce(sub)
     return p
 
 

@@ -19,9 +19,8 @@ def record_circles_demos(
 ) -> Demonstrations:
     """Equal numbers of episodes from every mode's expert, in shuffled order.
 
-    Labels (the mode of each episode) and full states (positions) are kept for
-    evaluation only.  ``episodes`` must be a positive multiple of the number
-    of modes so that the mix is exactly balanced.
+    Labels (the mode of each episode) and full states (positions) are kept for evaluation only.
+    ``episodes`` must be a positive multiple of the number of modes so that the mix is exactly balanced.
 
     ``radius_range`` (r1, r2): each episode follows its mode's circle with a radius of its own,
     drawn uniformly in [r1, r2] (same tangent at the origin, same direction): demonstrations
@@ -177,25 +176,9 @@ def _is_reward_term(key: str) -> bool:
     return key.endswith(("_weight", "_reward")) or key in REWARD_KEYWORDS
 
 
-def merge_demos(sources: list[Demonstrations], proportions: list[float] | None = None, episodes: int | None = None,
-                seed: int = 0, names: list[str] | None = None) -> Demonstrations:
-    """One unlabeled training set from recordings of several experts / tasks.
-
-    Episodes are taken from the sources in ``proportions`` (default: equal) --
-    as many as the sources allow, or ``episodes`` in total -- and shuffled.
-    Labels (evaluation only) follow the sources' label names, so the same task
-    in two files keeps one label.  The sources must share environment id,
-    observation mask and sizes, and their environment keywords may differ
-    only in reward terms (``*_weight``, ``*_reward``, ``target_velocity``): the learner trains in
-    the first source's environment, whose dynamics they all share.
-    """
-    if not sources:
-        raise ValueError("merge needs at least one demonstrations file")
-    names = names or [f"source {i}" for i in range(len(sources))]
-    p = np.ones(len(sources)) if proportions is None else np.asarray(proportions, dtype=np.float64)
-    if p.shape != (len(sources),) or np.any(~np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
-        raise ValueError(f"proportions: expected {len(sources)} non-negative numbers (one per file), got {proportions}")
-    p = p / p.sum()
+def _check_mergeable(sources: list[Demonstrations], names: list[str]) -> None:
+    """ValueError unless every source shares the first's environment id, observation mask, sizes, kind of
+    states and environment keywords but reward terms."""
     first = sources[0].metadata
     for name, d in zip(names, sources, strict=True):
         md = d.metadata
@@ -213,6 +196,11 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
                              "differ")
         if (d.states is None) != (sources[0].states is None):
             raise ValueError(f"{name}: some files have full states and some not")
+
+
+def _episodes_to_take(sources: list[Demonstrations], p: np.ndarray, episodes: int | None,
+                      names: list[str]) -> np.ndarray:
+    """Episodes taken from each source: proportions ``p`` of ``episodes``, or of as many as the sources allow."""
     available = np.array([d.num_episodes for d in sources])
     total = int(np.floor(min(available[p > 0] / p[p > 0]))) if episodes is None else int(episodes)
     take = np.floor(p * total + 1e-9).astype(np.int64)
@@ -221,6 +209,52 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
         raise ValueError(f"{names[i]}: {take[i]} episodes requested, it has {available[i]}")
     if take.sum() < 1:
         raise ValueError("the merge would hold no episodes")
+    return take
+
+
+def _label_index(label_names: list[str], name: str) -> int:
+    """The index of label ``name`` in ``label_names``, appended when new: one label per task across files."""
+    if name not in label_names:
+        label_names.append(name)
+    return label_names.index(name)
+
+
+def _merge_task_metadata(merged: dict[str, dict], weight: dict[str, int], metadata: dict, n: int, name: str) -> None:
+    """Add one source's per-task metadata (``n`` episodes taken) to ``merged``: its tasks' environment keywords
+    (which must agree between files), and each figure as an episode-weighted mean over the files holding the task."""
+    for key, table in merged.items():
+        for task, value in (metadata.get(key) or {}).items():
+            if key == "tasks":
+                if task in table and table[task] != value:
+                    raise ValueError(f"{name}: task {task!r} has environment keywords {value}, another file "
+                                     f"{table[task]}")
+                table[task] = value
+            else:
+                w = weight.get(f"{key}/{task}", 0)
+                table[task] = (table.get(task, 0.0) * w + float(value) * n) / (w + n)
+                weight[f"{key}/{task}"] = w + n
+
+
+def merge_demos(sources: list[Demonstrations], proportions: list[float] | None = None, episodes: int | None = None,
+                seed: int = 0, names: list[str] | None = None) -> Demonstrations:
+    """One unlabeled training set from recordings of several experts / tasks.
+
+    Episodes are taken from the sources in ``proportions`` (default: equal) -- as many as the sources allow,
+    or ``episodes`` in total -- and shuffled.  Labels (evaluation only) follow the sources' label names, so the
+    same task in two files keeps one label.  The sources must share environment id, observation mask and
+    sizes, and their environment keywords may differ only in reward terms (``*_weight``, ``*_reward``,
+    ``target_velocity``): the learner trains in the first source's environment, whose dynamics they all share.
+    """
+    if not sources:
+        raise ValueError("merge needs at least one demonstrations file")
+    names = names or [f"source {i}" for i in range(len(sources))]
+    p = np.ones(len(sources)) if proportions is None else np.asarray(proportions, dtype=np.float64)
+    if p.shape != (len(sources),) or np.any(~np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
+        raise ValueError(f"proportions: expected {len(sources)} non-negative numbers (one per file), got {proportions}")
+    p = p / p.sum()
+    first = sources[0].metadata
+    _check_mergeable(sources, names)
+    take = _episodes_to_take(sources, p, episodes, names)
     rng = np.random.default_rng(seed)
     label_names: list[str] = []
     merged_md: dict[str, dict] = {"tasks": {}, "expert_returns": {}, "expert_displacement": {}, "expert_speed": {},
@@ -238,26 +272,13 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
         for e in chosen:
             lo, hi = d.episode_bounds[e], d.episode_bounds[e + 1]
             lab = int(src_labels[e])
-            lname = own[lab] if lab < len(own) else f"{name} label {lab}"
-            if lname not in label_names:
-                label_names.append(lname)
-            labels.append(label_names.index(lname))
+            labels.append(_label_index(label_names, own[lab] if lab < len(own) else f"{name} label {lab}"))
             pieces_obs.append(d.observations[lo:hi])
             pieces_act.append(d.actions[lo:hi])
             if d.states is not None:
                 pieces_states.append(d.states[lo:hi])
             lengths.append(int(hi - lo))
-        for key, table in merged_md.items():
-            for task, value in (d.metadata.get(key) or {}).items():
-                if key == "tasks":
-                    if task in table and table[task] != value:
-                        raise ValueError(f"{name}: task {task!r} has environment keywords {value}, another file "
-                                         f"{table[task]}")
-                    table[task] = value
-                else:  # episode-weighted mean over the files that hold the task
-                    w = weight.get(f"{key}/{task}", 0)
-                    table[task] = (table.get(task, 0.0) * w + float(value) * int(n)) / (w + int(n))
-                    weight[f"{key}/{task}"] = w + int(n)
+        _merge_task_metadata(merged_md, weight, d.metadata, int(n), name)
     order = rng.permutation(len(lengths))
     bounds = np.concatenate([[0], np.cumsum([lengths[i] for i in order])])
     metadata = {**first, **{k: v for k, v in merged_md.items() if v},

@@ -140,6 +140,26 @@ def _set_metadata(dataset_path: Path, values: dict[str, Any]) -> None:
     MinariStorage.read(dataset_path / "data").update_metadata(values)
 
 
+def _foreign_metadata(dataset: Any, dataset_id: str, meta: dict[str, Any],
+                      observation_mask: str | list[int] | None) -> dict[str, Any]:
+    """pomil's metadata for a dataset not written by :func:`export_minari`: its environment (id and keywords,
+    with the episode limit) and the observation mask asked for."""
+    spec = dataset.spec.env_spec
+    if spec is None:
+        raise PomilError(f"import: {dataset_id!r} names no environment (env_spec); pomil needs one to train in")
+    kwargs = dict(spec.kwargs or {})
+    if spec.max_episode_steps is not None:
+        kwargs["max_episode_steps"] = spec.max_episode_steps
+    from pomil.envs.wrappers import resolve_observation_mask
+
+    try:
+        mask = resolve_observation_mask(spec.id, kwargs, observation_mask)
+    except ValueError as err:
+        raise PomilError(f"import: {err}") from None
+    return {"env_id": spec.id, "env_kwargs": kwargs, "observation_mask": mask,
+            "source": f"Minari dataset {dataset_id} ({meta.get('algorithm_name')}, {meta.get('author')})"}
+
+
 def import_minari(dataset_id: str, root: str | Path | None = None,
                   observation_mask: str | list[int] | None = None) -> Demonstrations:
     """Read the local Minari dataset ``dataset_id`` as pomil demonstrations.
@@ -174,24 +194,8 @@ def import_minari(dataset_id: str, root: str | Path | None = None,
             labels.append(int(np.asarray(info_label)[0]) if info_label is not None else -1)
     full = np.concatenate(obs).astype(np.float32)
     stored = meta.get(METADATA_KEY)
-    if stored:
-        metadata = json.loads(stored)
-        mask = metadata.get("observation_mask")
-    else:
-        spec = dataset.spec.env_spec
-        if spec is None:
-            raise PomilError(f"import: {dataset_id!r} names no environment (env_spec); pomil needs one to train in")
-        kwargs = dict(spec.kwargs or {})
-        if spec.max_episode_steps is not None:
-            kwargs["max_episode_steps"] = spec.max_episode_steps
-        from pomil.envs.wrappers import resolve_observation_mask
-
-        try:
-            mask = resolve_observation_mask(spec.id, kwargs, observation_mask)
-        except ValueError as err:
-            raise PomilError(f"import: {err}") from None
-        metadata = {"env_id": spec.id, "env_kwargs": kwargs, "observation_mask": mask,
-                    "source": f"Minari dataset {dataset_id} ({meta.get('algorithm_name')}, {meta.get('author')})"}
+    metadata = json.loads(stored) if stored else _foreign_metadata(dataset, dataset_id, meta, observation_mask)
+    mask = metadata.get("observation_mask")
     has_labels = all(label >= 0 for label in labels)
     if has_labels and "label_names" not in metadata:
         metadata["label_names"] = [f"label{i}" for i in range(max(labels) + 1)]

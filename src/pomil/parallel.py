@@ -111,6 +111,15 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
                 finish(i, JobResult(name, error=_one_line(err), details=traceback.format_exc()))
         return results  # type: ignore[return-value]
 
+    return _run_ray(fn, jobs, names, address, cpus_per_job, capture_errors, costs, finish, results)
+
+
+def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], address: str | None,
+             cpus_per_job: float, capture_errors: bool, costs: Sequence[float] | None,
+             finish: Callable[[int, JobResult], None], results: list[JobResult | None]) -> list[JobResult]:
+    """The jobs as Ray tasks, costliest first (``address``: an existing cluster; None starts a local Ray here and
+    stops it afterwards)."""
+    total = len(jobs)
     try:
         import ray as ray_lib
     except ImportError:

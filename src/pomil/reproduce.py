@@ -780,76 +780,21 @@ def merge_task_results(sources: list[Path], out: Path, policies: bool = True) ->
     one-line error before a file is written."""
     import shutil
 
-    loaded = []
-    for src in sources:
-        path = Path(src) / "metrics.json"
-        try:
-            loaded.append((Path(src), json.loads(path.read_text())))
-        except (OSError, ValueError) as err:
-            raise PomilError(f"{path}: cannot read a reproduction's metrics ({err})") from None
-    for src, r in loaded:
-        if r.get("experiment") not in ("hopper", "tasks") or "learners" not in r:
-            raise PomilError(f"{src}/metrics.json: not a Hopper/tasks reproduction (experiment "
-                             f"{r.get('experiment')!r}); merge joins those")
+    loaded = _load_task_results(sources)
     (first_src, first), rest = loaded[0], loaded[1:]
-
-    def same(key: str, a: Any, b: Any, src: Path) -> None:
-        if a != b:
-            raise PomilError(f"{src}/metrics.json: {key} differs from {first_src}'s ({b!r} against {a!r}); "
-                             "only runs of the same experiment and settings on other seeds can be merged")
-
     merged = json.loads(json.dumps(first))
     merged["success_criteria"] = TASKS_SUCCESS  # the success counts are recomputed from the runs with today's
     merged["merged_from"] = [{"results": str(first_src), "config": first["config"], "reference": first["reference"]}]
     for src, r in rest:
-        for key in ("experiment", "env_id", "setting", "tasks", "episodes_per_code"):
-            same(key, first.get(key), r.get(key), src)
-        for key in ("expert_returns", "still_returns"):  # the same experts and tasks: the same reference returns
-            a, b = first["reference"][key], r["reference"][key]
-            drift = max(abs(a[t] - b[t]) / max(1.0, abs(a[t])) for t in a) if set(a) == set(b) else math.inf
-            if drift > REFERENCE_RTOL:
-                same(f"reference.{key}", a, b, src)
-            if drift > 1e-9:
-                print(f"pomil: note: {src}: reference.{key} differs from {first_src}'s by up to {100 * drift:.2f}% "
-                      f"(within {100 * REFERENCE_RTOL:g}%: the same experts recorded again, where floats differ); "
-                      "each source's reference stays in merged_from", file=sys.stderr)
-        for key in ("adversarial_iterations", "bc_iterations"):
-            same(f"config.{key}", first["config"].get(key), r["config"].get(key), src)
-        for key in ("adversarial_settings", "bc_settings"):
-            if key in first and key in r:
-                one_sided = sorted(set(first[key]) ^ set(r[key]))
-                if one_sided:
-                    print(f"pomil: note: {key} {', '.join(one_sided)} recorded by only one of {first_src} and "
-                          f"{src}: not compared", file=sys.stderr)
-                drop = {*MERGE_FREE[key], *one_sided}
-                same(key, {k: v for k, v in first[key].items() if k not in drop},
-                     {k: v for k, v in r[key].items() if k not in drop}, src)
-            elif key in first or key in r:
-                print(f"pomil: note: {src if key in first else first_src}/metrics.json records no {key}: "
-                      "not compared", file=sys.stderr)
-        for name, lr in r["learners"].items():
-            to = merged["learners"].setdefault(name, {"runs": [], "wall_s": [], "curves": []})
-            seeds = {run["train_seed"] for run in to["runs"]}
-            repeated = sorted(seeds & {run["train_seed"] for run in lr["runs"]})
-            if repeated:
-                raise PomilError(f"{src}/metrics.json: {name} seed(s) {repeated} are already in the merge")
-            for k in ("runs", "wall_s", "curves"):
-                to[k] += lr[k]
+        _check_same_settings(first_src, first, src, r)
+        _add_learner_runs(merged, src, r)
         merged["merged_from"].append({"results": str(src), "config": r["config"], "reference": r["reference"]})
         merged["wall_time_s"] = merged.get("wall_time_s", 0.0) + r.get("wall_time_s", 0.0)
     counts = {name: len(lr["runs"]) for name, lr in merged["learners"].items()}
     if len(set(counts.values())) > 1:
         raise PomilError(f"the merged learners have different numbers of seeds ({counts}); merge reproductions "
                          "of the same learners")
-    copies = []
-    for src, r in loaded if policies else []:
-        for name, lr in r["learners"].items():
-            for run in lr["runs"]:
-                policy = src / "policies" / f"{name}-seed{run['train_seed']}.pt"
-                if not policy.is_file():
-                    raise PomilError(f"{policy}: missing (every run's policy is merged with it; --no-policies "
-                                     "joins the metrics alone)")
-                copies.append((policy, out / "policies" / policy.name))
+    copies = _policy_copies(loaded, out) if policies else []
     for lr in merged["learners"].values():
         order = np.argsort([run["train_seed"] for run in lr["runs"]], kind="stable")
         for k in ("runs", "wall_s", "curves"):
@@ -863,3 +808,79 @@ def merge_task_results(sources: list[Path], out: Path, policies: bool = True) ->
             shutil.copyfile(policy, dest)
     write_task_results(out, merged)
     return merged
+
+
+def _load_task_results(sources: list[Path]) -> list[tuple[Path, dict[str, Any]]]:
+    """Each source's metrics.json, which must be a Hopper/tasks reproduction's."""
+    loaded = []
+    for src in sources:
+        path = Path(src) / "metrics.json"
+        try:
+            loaded.append((Path(src), json.loads(path.read_text())))
+        except (OSError, ValueError) as err:
+            raise PomilError(f"{path}: cannot read a reproduction's metrics ({err})") from None
+    for src, r in loaded:
+        if r.get("experiment") not in ("hopper", "tasks") or "learners" not in r:
+            raise PomilError(f"{src}/metrics.json: not a Hopper/tasks reproduction (experiment "
+                             f"{r.get('experiment')!r}); merge joins those")
+    return loaded
+
+
+def _check_same_settings(first_src: Path, first: dict[str, Any], src: Path, r: dict[str, Any]) -> None:
+    """PomilError unless reproduction ``r`` measured what ``first`` did (see :func:`merge_task_results`)."""
+    def same(key: str, a: Any, b: Any) -> None:
+        if a != b:
+            raise PomilError(f"{src}/metrics.json: {key} differs from {first_src}'s ({b!r} against {a!r}); "
+                             "only runs of the same experiment and settings on other seeds can be merged")
+
+    for key in ("experiment", "env_id", "setting", "tasks", "episodes_per_code"):
+        same(key, first.get(key), r.get(key))
+    for key in ("expert_returns", "still_returns"):  # the same experts and tasks: the same reference returns
+        a, b = first["reference"][key], r["reference"][key]
+        drift = max(abs(a[t] - b[t]) / max(1.0, abs(a[t])) for t in a) if set(a) == set(b) else math.inf
+        if drift > REFERENCE_RTOL:
+            same(f"reference.{key}", a, b)
+        if drift > 1e-9:
+            print(f"pomil: note: {src}: reference.{key} differs from {first_src}'s by up to {100 * drift:.2f}% "
+                  f"(within {100 * REFERENCE_RTOL:g}%: the same experts recorded again, where floats differ); "
+                  "each source's reference stays in merged_from", file=sys.stderr)
+    for key in ("adversarial_iterations", "bc_iterations"):
+        same(f"config.{key}", first["config"].get(key), r["config"].get(key))
+    for key in ("adversarial_settings", "bc_settings"):
+        if key in first and key in r:
+            one_sided = sorted(set(first[key]) ^ set(r[key]))
+            if one_sided:
+                print(f"pomil: note: {key} {', '.join(one_sided)} recorded by only one of {first_src} and "
+                      f"{src}: not compared", file=sys.stderr)
+            drop = {*MERGE_FREE[key], *one_sided}
+            same(key, {k: v for k, v in first[key].items() if k not in drop},
+                 {k: v for k, v in r[key].items() if k not in drop})
+        elif key in first or key in r:
+            print(f"pomil: note: {src if key in first else first_src}/metrics.json records no {key}: "
+                  "not compared", file=sys.stderr)
+
+
+def _add_learner_runs(merged: dict[str, Any], src: Path, r: dict[str, Any]) -> None:
+    """Every learner's runs, wall times and curves of reproduction ``r`` added to ``merged``; no seed twice."""
+    for name, lr in r["learners"].items():
+        to = merged["learners"].setdefault(name, {"runs": [], "wall_s": [], "curves": []})
+        seeds = {run["train_seed"] for run in to["runs"]}
+        repeated = sorted(seeds & {run["train_seed"] for run in lr["runs"]})
+        if repeated:
+            raise PomilError(f"{src}/metrics.json: {name} seed(s) {repeated} are already in the merge")
+        for k in ("runs", "wall_s", "curves"):
+            to[k] += lr[k]
+
+
+def _policy_copies(loaded: list[tuple[Path, dict[str, Any]]], out: Path) -> list[tuple[Path, Path]]:
+    """(policy file, its place in ``out``) for every run of every source; PomilError for one that is missing."""
+    copies = []
+    for src, r in loaded:
+        for name, lr in r["learners"].items():
+            for run in lr["runs"]:
+                policy = src / "policies" / f"{name}-seed{run['train_seed']}.pt"
+                if not policy.is_file():
+                    raise PomilError(f"{policy}: missing (every run's policy is merged with it; --no-policies "
+                                     "joins the metrics alone)")
+                copies.append((policy, out / "policies" / policy.name))
+    return copies

@@ -115,9 +115,9 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, episo
     return result
 
 
-def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[str, Any]:
-    from pomil.parallel import run_jobs, usable_cpus
-
+def _sweep_plan(config_path: str, grid_entries: list[str]) -> tuple[str, dict[str, Any], dict[str, list], list[dict]]:
+    """(learner, base config, grid, settings) of a sweep file and its ``--grid`` entries, every setting checked
+    to make a valid config before anything runs."""
     base = load_config_file(config_path)
     learner = str(base.pop("learner", "infogail-pomdp"))
     trainer = learner_named(learner, f"{config_path}: 'learner'")
@@ -129,8 +129,15 @@ def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[s
     base["demos"] = str(Path(base["demos"]).resolve())
     grid = parse_grid(grid_entries)
     settings = [dict(zip(grid, combo, strict=True)) for combo in itertools.product(*grid.values())] or [{}]
-    for s in settings:  # every setting must make a valid config before anything runs
+    for s in settings:
         trainer.make_config({**base, **s}, source=f"{config_path} + {setting_name(s)}")
+    return learner, base, grid, settings
+
+
+def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[str, Any]:
+    from pomil.parallel import run_jobs, usable_cpus
+
+    learner, base, grid, settings = _sweep_plan(config_path, grid_entries)
     out = Path(cfg.out).resolve()
     t_start = time.perf_counter()
     jobs, names, finished = [], [], {}

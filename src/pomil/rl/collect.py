@@ -46,20 +46,16 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int,
             execute: Callable[[torch.Tensor], torch.Tensor],
             generator: torch.Generator, device: torch.device, threads: int = 1, code_kind: str = "discrete",
             code_prior: str = "uniform") -> Collected:
-    """One episode in each of the env's N copies, a latent code per episode
-    (none when ``num_codes`` is 0): one of ``num_codes`` codes, or with ``code_kind``
-    continuous a ``num_codes``-dimensional code from ``code_prior`` (``pomil.nn.codes``).
-    ``execute`` maps raw actions to executed ones (``pomil.envs.executed_actions_fn``).  Episodes may end at different
-    steps; ``mask`` marks the steps that belong to an episode.
+    """One episode in each of the env's N copies, a latent code per episode (none when ``num_codes`` is 0): one
+    of ``num_codes`` codes, or with ``code_kind`` continuous a ``num_codes``-dimensional code from ``code_prior``
+    (``pomil.nn.codes``).  ``execute`` maps raw actions to executed ones (``pomil.envs.executed_actions_fn``).
+    Episodes may end at different steps; ``mask`` marks the steps that belong to an episode.  Returns a
+    :class:`Collected`: the rollout, the next states' values, each episode's code and the environment's rewards.
 
-    Returns a :class:`Collected`: the rollout, the next states' values, each
-    episode's code and the environment's own rewards.
-
-    The policy steps with ``threads`` torch threads (0: as set).  Its per-step
-    tensors are small, and with one thread torch's OpenMP workers do not spin
-    on the cores that a batched simulator's own threads step the physics on
-    (measured in ``benchmarks/hopper_speed.py``).  The values are computed after
-    the episodes, in one unroll of the value network over the whole rollout."""
+    The policy steps with ``threads`` torch threads (0: as set): its per-step tensors are small, and with one
+    thread torch's OpenMP workers do not spin on the cores that a batched simulator's own threads step the
+    physics on (``benchmarks/hopper_speed.py``).  The values come after the episodes, in one unroll of the
+    value network over the whole rollout."""
     n = env.num_envs
     obs = env.reset()
     code_idx, codes = draw_codes(code_kind, code_prior, n, num_codes, generator)
