@@ -33,16 +33,15 @@ from dataclasses import replace
 
 import torch
 
-from pomil.algos.adversarial import (
+from pomil.algos.adversarial import AdversarialConfig, bc_warm_start, build_modules, resolve_num_codes
+from pomil.algos.warm_start import (
     DEEP_WARM_START,
     FAST_WARM_START,
     LONG_WARM_START,
-    AdversarialConfig,
-    bc_warm_start,
-    build_modules,
-    resolve_num_codes,
+    _nll,
+    episode_features,
+    mixture_bc_loss,
 )
-from pomil.algos.bc import _nll, episode_features, mixture_bc_loss
 from pomil.data import load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.nn.policy import shift_actions

@@ -72,9 +72,10 @@ def metrics_hash(path: str | Path) -> str:
 
 def tiny_runs(out: Path) -> dict[str, tuple[str, Any]]:
     """(learner, config) of every guarded run, writing under ``out``."""
-    from pomil.algos.adversarial import LONG_WARM_START, AdversarialConfig
+    from pomil.algos.adversarial import AdversarialConfig
     from pomil.algos.bc import BCConfig
     from pomil.algos.expert import ExpertConfig
+    from pomil.algos.warm_start import LONG_WARM_START
 
     circles, hopper = str(ROOT / "data/circles.npz"), str(ROOT / "data/hopper-paper.npz")
     # The warm start of the defaults when these hashes were recorded (preset long-warm-start; its schedule is a

@@ -17,6 +17,7 @@ import torch
 import pomil.algos.adversarial as adversarial
 import pomil.algos.bc as bc
 import pomil.algos.expert as expert
+import pomil.algos.warm_start as warm_start
 import pomil.data
 from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.algos.bc import BCConfig, train_bc
@@ -121,7 +122,7 @@ def test_the_issues_divergent_learning_rates_end_in_one_line_with_exit_3(demos_p
 
 
 def test_warm_start_is_guarded(demos_path, tmp_path, monkeypatch):
-    _nan_on_call(monkeypatch, adversarial, "bc_step", 3, "bc/nll")
+    _nan_on_call(monkeypatch, warm_start, "bc_step", 3, "bc/nll")
     with pytest.raises(DivergenceError) as err:
         train_adversarial(_adv(demos_path, tmp_path / "w", bc_init_iterations=5))
     assert str(err.value) == ("warm-start step 3: warm-start loss (negative log-likelihood) is nan (the run diverged); "

@@ -38,6 +38,12 @@ class Learner:
     fixed: dict[str, Any] = field(default_factory=dict)
     command: bool = True  # a ``pomil train`` subcommand (bc-mlp / bc-gru are bc with --policy)
     cost: float = 1.0
+    recurrent: bool = False
+    """An adversarial learner's networks: belief encoders of kind ``belief_encoder`` (else MLPs)."""
+    codes: bool = False
+    """An adversarial learner with latent codes (and a posterior)."""
+    critic_objective: str = ""
+    """An adversarial learner's critic: ``wasserstein`` or ``gan``."""
 
     @property
     def config(self) -> type:
@@ -54,9 +60,9 @@ class Learner:
         return from_dict(self.config, {**values, **self.fixed}, source=source)
 
 
-def _adversarial(name: str, text: str, cost: float) -> Learner:
+def _adversarial(name: str, text: str, cost: float, *, recurrent: bool, codes: bool, critic: str) -> Learner:
     return Learner(name, text, "pomil.algos.adversarial", "AdversarialConfig", "train_adversarial", {"learner": name},
-                   cost=cost)
+                   cost=cost, recurrent=recurrent, codes=codes, critic_objective=critic)
 
 
 def _ablation(name: str, text: str, cost: float = 1.0, **fixed: Any) -> Learner:
@@ -73,10 +79,12 @@ LEARNERS: dict[str, Learner] = {learner.name: learner for learner in (
     _bc("bc", "behaviour cloning (feed-forward, GRU, LSTM or attention policy)", 0.15),
     _bc("bc-mlp", "behaviour cloning with a feed-forward policy (current observation only)", 0.05, policy="mlp"),
     _bc("bc-gru", "behaviour cloning with a GRU policy (belief over the history)", 0.15, policy="gru"),
-    _adversarial("gail", "GAIL: MLP networks, no codes, GAN discriminator", 0.4),
-    _adversarial("infogail", "InfoGAIL: MLP networks, latent codes, Wasserstein critic", 0.55),
+    _adversarial("gail", "GAIL: MLP networks, no codes, GAN discriminator", 0.4, recurrent=False, codes=False,
+                 critic="gan"),
+    _adversarial("infogail", "InfoGAIL: MLP networks, latent codes, Wasserstein critic", 0.55, recurrent=False,
+                 codes=True, critic="wasserstein"),
     _adversarial("infogail-pomdp", "InfoGAIL-POMDP (the paper's method): separate GRU belief encoders, codes, "
-                                   "Wasserstein critic", 1.0),
+                                   "Wasserstein critic", 1.0, recurrent=True, codes=True, critic="wasserstein"),
     _ablation("igp-warm-start", "ablation: InfoGAIL-POMDP's mixture warm start alone (no adversarial iteration)",
               0.3, iterations=0),
     _ablation("igp-no-mi", "ablation: InfoGAIL-POMDP without the mutual-information reward (lambda1 = 0)",

@@ -305,7 +305,7 @@ def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
     agree (12), and get their own otherwise (9): the loss and its gradients are those of
     the separate computation, up to rounding."""
     from pomil.algos.adversarial import policy_and_demo_features
-    from pomil.algos.bc import demo_bc_loss, demo_nll
+    from pomil.algos.warm_start import demo_bc_loss, demo_nll
     from pomil.data import PaddedEpisodes
     from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 
@@ -324,7 +324,7 @@ def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
         policy.zero_grad()
         g = torch.Generator().manual_seed(1)
         if joint:
-            from pomil.algos.bc import demo_batch
+            from pomil.algos.warm_start import demo_batch
             demo, demo_prev, _ = demo_batch(demos, prev, 8, g)
             feats, demo_feats = policy_and_demo_features(policy, b, demo, demo_prev)
             bc, _ = demo_nll(policy, demo_feats, demo, g, 2, mixture)

@@ -80,7 +80,7 @@ def test_checkpoints_load_with_weights_only(demos_path, tmp_path):
 
 
 def test_balanced_responsibilities_are_a_balanced_soft_assignment():
-    from pomil.algos.bc import balanced_responsibilities
+    from pomil.algos.warm_start import balanced_responsibilities
 
     # every item prefers code 0, yet each code must take half of them: the two that prefer it least go to code 1
     scores = torch.tensor([[4.0, 3.0, 2.0, 1.0], [0.0, 0.0, 0.0, 0.0]])
@@ -128,7 +128,12 @@ def _two_clusters():
 def test_dataset_assignment_keeps_an_over_sampled_cluster_on_its_own_code():
     """A batch of 6 episodes of one cluster and 2 of the other: balancing within the batch
     hands 2 of the 6 to the other cluster's code; the dataset-wide assignment does not."""
-    from pomil.algos.bc import MixtureAssignment, balanced_responsibilities, episode_log_likelihoods, mixture_bc_loss
+    from pomil.algos.warm_start import (
+        MixtureAssignment,
+        balanced_responsibilities,
+        episode_log_likelihoods,
+        mixture_bc_loss,
+    )
     from pomil.nn.policy import GaussianPolicy, PolicyArch
 
     torch.manual_seed(0)
@@ -179,7 +184,7 @@ def test_dataset_assignment_keeps_an_over_sampled_cluster_on_its_own_code():
 def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code(balance):
     """Episodes look the same but half act +0.6 and half -0.6: a code per episode must
     explain the difference, and the mixture likelihood gives each cluster its own code."""
-    from pomil.algos.bc import MixtureAssignment, bc_step, most_likely_codes
+    from pomil.algos.warm_start import MixtureAssignment, bc_step, most_likely_codes
     from pomil.nn.policy import GaussianPolicy, PolicyArch
 
     torch.manual_seed(0)
@@ -202,7 +207,8 @@ def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code(balance):
 
 
 def test_the_whole_set_assignment_refreshes_every_10_steps_or_once_per_pass():
-    from pomil.algos.adversarial import AdversarialConfig, mixture_assignment
+    from pomil.algos.adversarial import AdversarialConfig
+    from pomil.algos.warm_start import mixture_assignment
     from pomil.data import PaddedEpisodes
 
     def episodes(n):
@@ -238,7 +244,7 @@ def _constant_mean_policy(num_codes=0, offsets=None):
 
 def test_fit_log_std_is_the_masked_mean_squared_error_per_dimension():
     """Mean (0.5, -1) everywhere; the padded steps' actions (1000) must not count."""
-    from pomil.algos.bc import fit_log_std
+    from pomil.algos.warm_start import fit_log_std
     from pomil.data import PaddedEpisodes
     from pomil.nn.policy import shift_actions
 
@@ -257,7 +263,7 @@ def test_fit_log_std_weights_each_code_by_its_responsibility():
     """Two codes with means 0.5 + 2 and 0.5 - 2 on the first dimension; episode 0 acts 2.6 and
     episode 1 acts -1.3: with the mixture each is explained by its nearer code (errors 0.1 and
     0.2), without it (random codes) by both alike."""
-    from pomil.algos.bc import fit_log_std, mixture_bc_loss
+    from pomil.algos.warm_start import fit_log_std, mixture_bc_loss
     from pomil.data import PaddedEpisodes
     from pomil.nn.policy import shift_actions
 
@@ -282,7 +288,8 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
     to 0 over the steps (the fast-warm-start preset), after a linear rise over bc_init_lr_warmup of them
     (deep-warm-start and the defaults, whose log std runs at 1x and is not fitted); paper-text: 1e-3, 1x, no
     decay, no fit."""
-    from pomil.algos.adversarial import AdversarialConfig, warm_start_optimizer
+    from pomil.algos.adversarial import AdversarialConfig
+    from pomil.algos.warm_start import warm_start_optimizer
     from pomil.config import from_dict
     from pomil.nn.policy import GaussianPolicy, PolicyArch
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from pomil.algos.adversarial import AdversarialConfig, build_modules, posterior_loss, rewards, train_adversarial
-from pomil.algos.bc import EpisodeCodes, principal_components
+from pomil.algos.warm_start import EpisodeCodes, principal_components
 from pomil.api import TrainedPolicy
 from pomil.demos import record_circles_demos
 from pomil.envs import executed_actions_fn, make_vec_env

@@ -7,19 +7,18 @@ import pytest
 import torch
 
 from pomil.algos.adversarial import (
-    FAST_WARM_START,
     AdversarialConfig,
     AdversarialRun,
     BatchSampler,
     absorbing_bootstrap,
     build_modules,
     build_optimizers,
-    clone_demonstrations,
     update_critic,
     update_policy,
     update_posterior,
     with_rewards,
 )
+from pomil.algos.warm_start import FAST_WARM_START, clone_demonstrations
 from pomil.envs import executed_actions_fn, make_vec_env
 from pomil.nn.policy import shift_actions
 from pomil.rl.collect import Collected, collect

@@ -35,7 +35,6 @@ codes; Wasserstein).
 from __future__ import annotations
 
 import copy
-import math
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -47,24 +46,29 @@ from typing import Any, ClassVar, Literal
 import torch
 import torch.nn.functional as F
 
-from pomil.algos.bc import (
+from pomil.algos.num_codes import NumCodesChoice, search_num_codes
+from pomil.algos.warm_start import (
+    DEEP_WARM_START,
+    FAST_WARM_START,
+    LONG_WARM_START,
     EpisodeCodes,
     MixtureAssignment,
-    bc_step,
+    clone_demonstrations,
+    clone_with_continuous_codes,
     demo_batch,
     demo_nll,
     episodes_within,
     first_step_starts,
-    fit_log_std,
+    mixture_assignment,
     most_likely_codes,
 )
-from pomil.algos.num_codes import NumCodesChoice, search_num_codes
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs, resolved
 from pomil.data import Demonstrations, PaddedEpisodes, load_training_demos
 from pomil.envs import SIM_HELP, default_num_codes, evaluation_kind, executed_actions_fn, make_vec_env
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import ConfigError, PomilError
+from pomil.learners import LEARNERS
 from pomil.nn import heads
 from pomil.nn.codes import code_log_likelihood, gaussian_params, sample_prior
 from pomil.nn.encoders import OBS_DELTA_HELP, PREV_ACTION_HELP, fit_input_scale
@@ -75,13 +79,6 @@ from pomil.rl.gae import gae
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import DivergenceGuard, RunLoop, load_checkpoint, lr_hint, native_bfloat16, precision_context
-
-LEARNER_KINDS = {  # what each learner is made of (recurrent: belief encoders of kind ``belief_encoder``, else MLPs)
-    "gail": {"recurrent": False, "codes": False, "critic_objective": "gan"},
-    "infogail": {"recurrent": False, "codes": True, "critic_objective": "wasserstein"},
-    "infogail-pomdp": {"recurrent": True, "codes": True, "critic_objective": "wasserstein"},
-}
-
 
 # The defaults are the recipe measured best (README "Defaults"; the paper's text is the
 # ``paper-text`` preset).  Each choice was found by measurement:
@@ -111,22 +108,6 @@ LEARNER_KINDS = {  # what each learner is made of (recurrent: belief encoders of
 #   updates took the warm-started Hopper gaits apart within 5-10 iterations;
 # - 256 episodes per iteration, 30 iterations: the batched simulator and the networks
 #   run ~2x faster per env step than with 64.
-FAST_WARM_START: dict[str, Any] = {
-    "bc_init_iterations": 600, "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_lr_warmup": 0.0,
-    "bc_init_log_std_lr_scale": 10.0, "bc_init_fit_log_std": True,
-}
-"""The fast warm start's settings, lr 3e-3 without a rise (presets fast-warm-start and terminating, and every
-K's fit of the ``--num-codes auto`` search, which was calibrated on it)."""
-
-LONG_WARM_START: dict[str, Any] = {
-    "bc_init_iterations": 3000, "bc_init_lr": 1e-3, "bc_init_lr_decay": False, "bc_init_lr_warmup": 0.0,
-    "bc_init_log_std_lr_scale": 1.0, "bc_init_fit_log_std": False,
-}
-"""Preset long-warm-start: the former default warm start, 3000 steps at a constant lr 1e-3."""
-
-DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "bc_init_lr": 1e-2, "bc_init_lr_warmup": 0.2}
-"""Preset deep-warm-start: the fast warm start with the rate rising linearly to 1e-2 over the first 20% of the
-steps, then decaying to 0 (the default's schedule, with the fast warm start's log std: 10x and fitted)."""
 
 
 @dataclass(frozen=True)
@@ -543,7 +524,7 @@ def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialC
 # ---------------------------------------------------------------------- train
 def policy_arch(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int) -> PolicyArch:
     """The policy of a run with ``num_codes`` codes."""
-    enc = cfg.belief_encoder if LEARNER_KINDS[cfg.learner]["recurrent"] else "mlp"
+    enc = cfg.belief_encoder if LEARNERS[cfg.learner].recurrent else "mlp"
     return PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean,
                       cfg.attention_context, cfg.policy_obs_delta, cfg.policy_prev_action, cfg.code_kind,
                       cfg.code_prior)
@@ -551,7 +532,7 @@ def policy_arch(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: i
 
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
                   device: torch.device | str) -> tuple[Modules, PolicyArch]:
-    enc = cfg.belief_encoder if LEARNER_KINDS[cfg.learner]["recurrent"] else "mlp"
+    enc = cfg.belief_encoder if LEARNERS[cfg.learner].recurrent else "mlp"
     ctx = cfg.attention_context
     arch = policy_arch(cfg, obs_dim, act_dim, num_codes)
     policy = GaussianPolicy(arch).to(device)
@@ -581,7 +562,7 @@ def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
     """The run's number of codes: 0 without codes, the configured K, or (-1) the demonstrations'
     modes; ``num_codes auto`` is chosen by :func:`auto_num_codes` instead.  Continuous codes: their
     dimension d (the width of the code input, as K is for one-hot codes)."""
-    if not LEARNER_KINDS[cfg.learner]["codes"]:
+    if not LEARNERS[cfg.learner].codes:
         return 0
     if cfg.code_kind == "continuous":
         return cfg.code_dim
@@ -617,7 +598,7 @@ class AdversarialRun:
 
     @property
     def objective(self) -> str:
-        return LEARNER_KINDS[self.cfg.learner]["critic_objective"]
+        return LEARNERS[self.cfg.learner].critic_objective
 
     @property
     def mixture(self) -> bool:
@@ -662,6 +643,67 @@ def build_optimizers(cfg: AdversarialConfig, m: Modules) -> dict[str, torch.opti
     if m.posterior is not None:
         opt["posterior"] = torch.optim.Adam(m.posterior.parameters(), lr=cfg.lr_posterior)
     return opt
+
+
+def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
+                  cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
+                  episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
+    """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
+
+    Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
+    episode gets a random code, so the policy starts out ignoring it and the
+    mutual-information reward later makes the codes choose between modes.  With
+    ``mixture`` (``bc_init_codes = "mixture"`` and a policy with codes) the policy maximises the
+    demonstrations' likelihood under a uniform mixture of its codes, so each code clones
+    its own cluster of episodes; the posterior then learns, on the demonstrations, to
+    tell each episode's most likely code from its steps (``posterior_init_iterations``).
+    Continuous codes (``code_kind``): random codes from the prior, or with ``episode_codes``
+    each episode's own code, fitted with the policy (:func:`clone_with_continuous_codes`); the
+    posterior then learns those codes."""
+    if cfg.code_kind == "continuous" and num_codes:
+        return _continuous_warm_start(m, expert, expert_prev, cfg, gen, guard, episode_codes)
+    stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
+    if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
+        codes = most_likely_codes(m.policy, expert, expert_prev)
+        stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
+        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
+    return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
+
+
+def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: torch.Tensor, codes: torch.Tensor,
+                         cfg: AdversarialConfig, gen: torch.Generator,
+                         guard: DivergenceGuard | None = None) -> dict[str, float]:
+    """``posterior_init_iterations`` steps of the posterior on the demonstrations, each episode
+    under its code in ``codes``: indices (E,) (cross-entropy) or continuous codes (E, d)
+    (:func:`_code_gaussian_nll`).  Returns the last step's stats."""
+    code_nll = _code_cross_entropy if codes.ndim == 1 else _code_gaussian_nll
+    post_opt = torch.optim.Adam(post.parameters(), lr=cfg.bc_init_lr)
+    starts = first_step_starts(expert.mask)
+    s: dict[str, float] = {}
+    for _ in range(cfg.posterior_init_iterations):
+        idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
+        targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
+        with precision_context(cfg.precision, starts.device):
+            loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
+                               starts[:, idx], expert.mask[:, idx], targets)
+        if guard is not None:
+            guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
+        post_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        post_opt.step()
+    return s
+
+
+def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: AdversarialConfig,
+                           gen: torch.Generator, guard: DivergenceGuard | None,
+                           episode_codes: EpisodeCodes | None) -> dict[str, float]:
+    """:func:`bc_warm_start` for continuous codes."""
+    stats = clone_with_continuous_codes(m.policy, expert, expert_prev, cfg, gen, guard, episode_codes)
+    if episode_codes is not None and m.posterior is not None and cfg.posterior_init_iterations > 0:
+        codes = episode_codes.codes.detach()
+        stats["bc/code_spread"] = codes.std(0).mean().item()
+        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
+    return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
 def update_critic(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, float]:
@@ -796,9 +838,90 @@ class PhaseClock:
         return {f"time/share_{k}": v / total for k, v in self.spent.items()}
 
 
+KEY_STATS = ("eval/nmi", "eval/spearman", "eval/mean_purity", "env/true_return", "posterior/accuracy",
+             "critic/wasserstein")
+
+
+def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, it: int) -> dict[str, float]:
+    """One iteration's phases: collect, critic, posterior, rewards and policy (the run loop evaluates,
+    logs and checkpoints)."""
+    cfg, m = run.cfg, run.m
+    with clock("rollout"):
+        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
+                                                           run.gen, loop.device, cfg.rollout_threads, cfg.code_kind,
+                                                           cfg.code_prior)
+        stats = {"env/true_return": env_rewards.sum(0).mean().item()}
+        run.check(it, "environment reward", stats["env/true_return"])
+        loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
+    with clock("critic"):
+        stats.update(update_critic(run, roll, it))
+    with clock("posterior"):
+        stats.update(update_posterior(run, roll, code_idx, it))
+    with clock("ppo"):
+        roll, s = with_rewards(run, roll, code_idx, next_values, it)
+        stats.update(s)
+        stats.update(update_policy(run, roll, it))
+    return stats
+
+
+def policy_and_demo_features(policy: GaussianPolicy, b: Rollout, demo: PaddedEpisodes,
+                              demo_prev: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The policy encoder's features on a PPO minibatch (from its stored initial state) and on
+    whole demonstration episodes (from a zero state), side by side when their lengths agree."""
+    def features(obs, prev, starts, h0):  # h0 as (1, N, H), so that every input has its columns on dim 1
+        return policy.features(obs, prev, h0[0], starts)[0]
+
+    demo_h0 = policy.initial_state(demo.mask.shape[1], demo.mask.device).unsqueeze(0)
+    return side_by_side(features, (b.observations, b.prev_actions, b.starts, b.h0_policy.unsqueeze(0)),
+                        (demo.observations, demo_prev, first_step_starts(demo.mask), demo_h0))
+
+
+def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
+                   demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
+    """The periodic evaluation of a run: mode metrics on circles (continuous codes: code against
+    fitted radius, ``evaluate_code_radius``), per-task figures
+    on multi-task demonstrations (``pomil demos hopper``); None otherwise (see ``pomil.envs.evaluation_kind``)."""
+    kind = evaluation_kind(env_info["id"], demos.metadata) if cfg.eval_every else None
+    if kind is None:
+        return None
+    if kind == "circles" and cfg.code_kind == "continuous" and LEARNERS[cfg.learner].codes:
+        from pomil.eval.circles import evaluate_code_radius
+
+        def measure(tp: TrainedPolicy) -> dict[str, float]:
+            metrics, _ = evaluate_code_radius(tp, episodes_per_value=cfg.eval_episodes, seed=12345)
+            return {"eval/spearman": metrics["spearman"], "eval/radius_low": metrics["radius_covered"][0],
+                    "eval/radius_high": metrics["radius_covered"][1]}
+    elif kind == "circles":
+        from pomil.eval.circles import evaluate_circles
+
+        def measure(tp: TrainedPolicy) -> dict[str, float]:
+            metrics, _ = evaluate_circles(tp, cfg.eval_episodes, seed=12345)
+            return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
+                    "eval/modes_covered": float(metrics["modes_covered"]),
+                    "eval/none_share": metrics["overall_none_share"]}
+    else:
+        from pomil.eval.tasks import evaluate_tasks, reference_of
+
+        reference = reference_of(demos.metadata, cfg.demos)
+
+        def measure(tp: TrainedPolicy) -> dict[str, float]:
+            res = evaluate_tasks(tp, reference, cfg.eval_episodes, seed=12345)
+            return {f"eval/{task}/{k}": float(v) for task, r in res["tasks"].items() for k, v in r.items()}
+
+    def evaluate(policy: GaussianPolicy) -> dict[str, float]:
+        rng_state_before = torch.get_rng_state()
+        stats = measure(TrainedPolicy(policy, cfg.learner, env_info, policy.log_std.device))
+        policy.train()
+        torch.set_rng_state(rng_state_before)
+        return stats
+
+    return evaluate
+
+
+# ------------------------------------------------------------------------- train
 def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
     """The option to lower when a quantity (named by its first word) turns NaN or inf."""
-    rewards = ("lr_critic", "lr_posterior") if LEARNER_KINDS[cfg.learner]["codes"] else ("lr_critic",)
+    rewards = ("lr_critic", "lr_posterior") if LEARNERS[cfg.learner].codes else ("lr_critic",)
     return {"policy": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr_value", *rewards),  # value targets are rewards
             "critic": lr_hint(cfg, "lr_critic"), "posterior": lr_hint(cfg, "lr_posterior"),
             "reward": lr_hint(cfg, *rewards), "warm-start": lr_hint(cfg, "bc_init_lr")}
@@ -826,7 +949,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
         demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
         choice = None
-        if cfg.num_codes == NUM_CODES_AUTO and LEARNER_KINDS[cfg.learner]["codes"]:
+        if cfg.num_codes == NUM_CODES_AUTO and LEARNERS[cfg.learner].codes:
             choice = (recorded_choice(loop.ckpt_path) if resume else
                       auto_num_codes(cfg, demos.padded(loop.device), execute, loop.guard))
         num_codes = choice.trained if choice is not None else resolve_num_codes(cfg, demos)
@@ -923,234 +1046,3 @@ def sized_for_episodes(cfg: AdversarialConfig, episode_steps: int) -> Adversaria
             f"{k} {getattr(cfg, k)} -> {n}" for k, n in cut.items()) + " (max_iteration_steps "
               f"{cfg.max_iteration_steps}, max_batch_steps {cfg.max_batch_steps})", file=sys.stderr)
     return replace(cfg, **cut)
-
-
-KEY_STATS = ("eval/nmi", "eval/spearman", "eval/mean_purity", "env/true_return", "posterior/accuracy",
-             "critic/wasserstein")
-
-
-def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, it: int) -> dict[str, float]:
-    """One iteration's phases: collect, critic, posterior, rewards and policy (the run loop evaluates,
-    logs and checkpoints)."""
-    cfg, m = run.cfg, run.m
-    with clock("rollout"):
-        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
-                                                           run.gen, loop.device, cfg.rollout_threads, cfg.code_kind,
-                                                           cfg.code_prior)
-        stats = {"env/true_return": env_rewards.sum(0).mean().item()}
-        run.check(it, "environment reward", stats["env/true_return"])
-        loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
-    with clock("critic"):
-        stats.update(update_critic(run, roll, it))
-    with clock("posterior"):
-        stats.update(update_posterior(run, roll, code_idx, it))
-    with clock("ppo"):
-        roll, s = with_rewards(run, roll, code_idx, next_values, it)
-        stats.update(s)
-        stats.update(update_policy(run, roll, it))
-    return stats
-
-
-def policy_and_demo_features(policy: GaussianPolicy, b: Rollout, demo: PaddedEpisodes,
-                              demo_prev: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The policy encoder's features on a PPO minibatch (from its stored initial state) and on
-    whole demonstration episodes (from a zero state), side by side when their lengths agree."""
-    def features(obs, prev, starts, h0):  # h0 as (1, N, H), so that every input has its columns on dim 1
-        return policy.features(obs, prev, h0[0], starts)[0]
-
-    demo_h0 = policy.initial_state(demo.mask.shape[1], demo.mask.device).unsqueeze(0)
-    return side_by_side(features, (b.observations, b.prev_actions, b.starts, b.h0_policy.unsqueeze(0)),
-                        (demo.observations, demo_prev, first_step_starts(demo.mask), demo_h0))
-
-
-def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_prev: torch.Tensor,
-                       mixture: bool) -> MixtureAssignment | None:
-    """The dataset-wide code assignment of the mixture warm start and BC term (None: balanced per batch),
-    refreshed every 10 steps or once per pass over the episodes, whichever is rarer: the refresh (one
-    forward pass over every episode) then costs at most about a third of the training steps between."""
-    if not (mixture and cfg.mixture_balance == "dataset"):
-        return None
-    return MixtureAssignment(expert, expert_prev, refresh=max(10, math.ceil(expert.mask.shape[1] / cfg.bc_init_batch)))
-
-
-def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
-                  cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
-                  episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
-    """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
-
-    Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
-    episode gets a random code, so the policy starts out ignoring it and the
-    mutual-information reward later makes the codes choose between modes.  With
-    ``mixture`` (``bc_init_codes = "mixture"`` and a policy with codes) the policy maximises the
-    demonstrations' likelihood under a uniform mixture of its codes, so each code clones
-    its own cluster of episodes; the posterior then learns, on the demonstrations, to
-    tell each episode's most likely code from its steps (``posterior_init_iterations``).
-    Continuous codes (``code_kind``): random codes from the prior, or with ``episode_codes``
-    each episode's own code, fitted with the policy (:func:`clone_with_continuous_codes`); the
-    posterior then learns those codes."""
-    if cfg.code_kind == "continuous" and num_codes:
-        return _continuous_warm_start(m, expert, expert_prev, cfg, gen, guard, episode_codes)
-    stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
-    if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
-        codes = most_likely_codes(m.policy, expert, expert_prev)
-        stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
-        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
-    return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
-
-
-def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: torch.Tensor, codes: torch.Tensor,
-                         cfg: AdversarialConfig, gen: torch.Generator,
-                         guard: DivergenceGuard | None = None) -> dict[str, float]:
-    """``posterior_init_iterations`` steps of the posterior on the demonstrations, each episode
-    under its code in ``codes``: indices (E,) (cross-entropy) or continuous codes (E, d)
-    (:func:`_code_gaussian_nll`).  Returns the last step's stats."""
-    code_nll = _code_cross_entropy if codes.ndim == 1 else _code_gaussian_nll
-    post_opt = torch.optim.Adam(post.parameters(), lr=cfg.bc_init_lr)
-    starts = first_step_starts(expert.mask)
-    s: dict[str, float] = {}
-    for _ in range(cfg.posterior_init_iterations):
-        idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
-        targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
-        with precision_context(cfg.precision, starts.device):
-            loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
-                               starts[:, idx], expert.mask[:, idx], targets)
-        if guard is not None:
-            guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
-        post_opt.zero_grad(set_to_none=True)
-        loss.backward()
-        post_opt.step()
-    return s
-
-
-def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: AdversarialConfig,
-                           gen: torch.Generator, guard: DivergenceGuard | None,
-                           episode_codes: EpisodeCodes | None) -> dict[str, float]:
-    """:func:`bc_warm_start` for continuous codes."""
-    stats = clone_with_continuous_codes(m.policy, expert, expert_prev, cfg, gen, guard, episode_codes)
-    if episode_codes is not None and m.posterior is not None and cfg.posterior_init_iterations > 0:
-        codes = episode_codes.codes.detach()
-        stats["bc/code_spread"] = codes.std(0).mean().item()
-        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
-    return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
-
-
-CODE_SPREAD_EVERY = 10
-"""Warm-start steps between moves of the episodes' continuous codes onto the prior (EpisodeCodes.spread_)."""
-
-
-def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor,
-                                cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
-                                episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
-    """The warm start's behaviour cloning with continuous codes: each episode under a random code
-    from the prior (InfoGAIL), or under its own code in ``episode_codes``, fitted with the policy
-    (its own learning rate, bc_init_code_lr_scale x bc_init_lr) and spread as the prior every
-    ``CODE_SPREAD_EVERY`` steps and at the end; then the log std's fit (``bc_init_fit_log_std``)."""
-    opt, decay = warm_start_optimizer(policy, cfg, episode_codes)
-    if episode_codes is not None:
-        codes_of = lambda idx: episode_codes.codes[idx]  # noqa: E731
-    else:
-        codes_of = lambda idx: sample_prior(cfg.code_prior, len(idx), policy.arch.num_codes,  # noqa: E731
-                                            gen).to(idx.device)
-    stats: dict[str, float] = {}
-    for step in range(1, cfg.bc_init_iterations + 1):
-        with precision_context(cfg.precision, expert.mask.device):
-            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
-        decay.step()
-        if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
-            episode_codes.spread_()
-        check_warm_start_step(guard, f"warm-start step {step}", stats, policy)
-    if cfg.bc_init_fit_log_std:
-        codes = (episode_codes.codes.detach() if episode_codes is not None
-                 else codes_of(torch.arange(expert.mask.shape[1], device=expert.mask.device)))
-        stats.update(fit_log_std(policy, expert, expert_prev, codes=codes))
-    return stats
-
-
-def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
-                         mixture: bool, cfg: AdversarialConfig, gen: torch.Generator,
-                         guard: DivergenceGuard | None = None, where: str = "") -> dict[str, float]:
-    """The policy's part of :func:`bc_warm_start`: ``bc_init_iterations`` behaviour-cloning steps
-    (the codes' mixture, or random codes), then the log std's fit (``bc_init_fit_log_std``).
-    Returns the last step's stats; ``where`` prefixes the step in a divergence's message."""
-    opt, decay = warm_start_optimizer(policy, cfg)
-    stats: dict[str, float] = {}
-    assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
-    for step in range(1, cfg.bc_init_iterations + 1):
-        with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
-            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
-        decay.step()
-        check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
-    if cfg.bc_init_fit_log_std:
-        stats.update(fit_log_std(policy, expert, expert_prev, mixture))
-    return stats
-
-
-def check_warm_start_step(guard: DivergenceGuard | None, at: str, stats: dict[str, float],
-                          policy: GaussianPolicy) -> None:
-    """The divergence guard's checks after a warm-start step ``at``: its loss, the policy's gradients and weights."""
-    if guard is not None:
-        guard.value(at, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
-        guard.grads(at, "warm-start policy", policy.parameters())
-        guard.params(at, {"warm-start policy": policy})
-
-
-def warm_start_optimizer(policy: GaussianPolicy, cfg: AdversarialConfig, episode_codes: EpisodeCodes | None = None,
-                         ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
-    """Adam over the policy, its log std at ``bc_init_log_std_lr_scale`` times ``bc_init_lr`` (and
-    the episodes' continuous codes at ``bc_init_code_lr_scale`` times), and the schedule to step
-    after each update: a linear rise over the first ``bc_init_lr_warmup`` of the steps, then a linear
-    decay to 0 over the rest (``bc_init_lr_decay``)."""
-    rest = [p for name, p in policy.named_parameters() if name != "log_std"]
-    groups = [{"params": rest}, {"params": [policy.log_std], "lr": cfg.bc_init_lr * cfg.bc_init_log_std_lr_scale}]
-    if episode_codes is not None:
-        groups.append({"params": [episode_codes.codes], "lr": cfg.bc_init_lr * cfg.bc_init_code_lr_scale})
-    opt = torch.optim.Adam(groups, lr=cfg.bc_init_lr)
-    steps, rise = cfg.bc_init_iterations, int(cfg.bc_init_lr_warmup * cfg.bc_init_iterations)
-
-    def factor(i: int) -> float:  # the learning rate of step i + 1, as a fraction of bc_init_lr
-        if i < rise:
-            return (i + 1) / rise
-        return 1 - (i - rise) / max(steps - rise, 1) if cfg.bc_init_lr_decay else 1.0
-    return opt, torch.optim.lr_scheduler.LambdaLR(opt, factor)
-
-
-def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
-                   demos: Demonstrations) -> Callable[[GaussianPolicy], dict[str, float]] | None:
-    """The periodic evaluation of a run: mode metrics on circles (continuous codes: code against
-    fitted radius, ``evaluate_code_radius``), per-task figures
-    on multi-task demonstrations (``pomil demos hopper``); None otherwise (see ``pomil.envs.evaluation_kind``)."""
-    kind = evaluation_kind(env_info["id"], demos.metadata) if cfg.eval_every else None
-    if kind is None:
-        return None
-    if kind == "circles" and cfg.code_kind == "continuous" and LEARNER_KINDS[cfg.learner]["codes"]:
-        from pomil.eval.circles import evaluate_code_radius
-
-        def measure(tp: TrainedPolicy) -> dict[str, float]:
-            metrics, _ = evaluate_code_radius(tp, episodes_per_value=cfg.eval_episodes, seed=12345)
-            return {"eval/spearman": metrics["spearman"], "eval/radius_low": metrics["radius_covered"][0],
-                    "eval/radius_high": metrics["radius_covered"][1]}
-    elif kind == "circles":
-        from pomil.eval.circles import evaluate_circles
-
-        def measure(tp: TrainedPolicy) -> dict[str, float]:
-            metrics, _ = evaluate_circles(tp, cfg.eval_episodes, seed=12345)
-            return {"eval/nmi": metrics["nmi"], "eval/mean_purity": metrics["mean_purity"],
-                    "eval/modes_covered": float(metrics["modes_covered"]),
-                    "eval/none_share": metrics["overall_none_share"]}
-    else:
-        from pomil.eval.tasks import evaluate_tasks, reference_of
-
-        reference = reference_of(demos.metadata, cfg.demos)
-
-        def measure(tp: TrainedPolicy) -> dict[str, float]:
-            res = evaluate_tasks(tp, reference, cfg.eval_episodes, seed=12345)
-            return {f"eval/{task}/{k}": float(v) for task, r in res["tasks"].items() for k, v in r.items()}
-
-    def evaluate(policy: GaussianPolicy) -> dict[str, float]:
-        rng_state_before = torch.get_rng_state()
-        stats = measure(TrainedPolicy(policy, cfg.learner, env_info, policy.log_std.device))
-        policy.train()
-        torch.set_rng_state(rng_state_before)
-        return stats
-
-    return evaluate

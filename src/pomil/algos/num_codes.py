@@ -1,7 +1,7 @@
 """``--num-codes auto``: the number of latent codes K chosen from unlabelled demonstrations.
 
 For each K = 1..K_max the mixture warm start (each of K codes clones its own balanced
-share of the episodes, :func:`pomil.algos.adversarial.clone_demonstrations`) is fitted to
+share of the episodes, :func:`pomil.algos.warm_start.clone_demonstrations`) is fitted to
 a training split of the episodes (80%, split by the run's seed), and the held-out
 episodes are scored per step by their *classification* log-likelihood under the uniform
 mixture of the K codes (:func:`classification_log_likelihood`, the held-out form of
@@ -39,7 +39,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from pomil.algos.bc import episode_log_likelihoods
+from pomil.algos.warm_start import episode_log_likelihoods
 from pomil.data import PaddedEpisodes
 from pomil.nn.policy import GaussianPolicy
 

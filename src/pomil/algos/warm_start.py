@@ -1,0 +1,402 @@
+"""The mixture warm start: behaviour cloning of unlabelled demonstrations, each latent code cloning its own
+cluster of episodes.
+
+The cloning steps (``bc_step`` on batches of whole episodes, shared with the BC learner), the codes'
+mixture likelihood balanced over the whole demonstration set (:class:`MixtureAssignment`), continuous
+codes' episode codes (:class:`EpisodeCodes`), the log std's maximum-likelihood fit, and the warm start's
+schedules and loops that the adversarial learners run before their first iteration (and the
+``--num-codes auto`` search runs for each K).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pomil.data import PaddedEpisodes
+from pomil.nn.codes import sample_prior, spread_as_prior
+from pomil.nn.policy import GaussianPolicy, shift_actions
+from pomil.training import DivergenceGuard, precision_context
+
+if TYPE_CHECKING:
+    from pomil.algos.adversarial import AdversarialConfig
+
+
+FAST_WARM_START: dict[str, Any] = {
+    "bc_init_iterations": 600, "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_lr_warmup": 0.0,
+    "bc_init_log_std_lr_scale": 10.0, "bc_init_fit_log_std": True,
+}
+"""The fast warm start's settings, lr 3e-3 without a rise (presets fast-warm-start and terminating, and every
+K's fit of the ``--num-codes auto`` search, which was calibrated on it)."""
+
+
+LONG_WARM_START: dict[str, Any] = {
+    "bc_init_iterations": 3000, "bc_init_lr": 1e-3, "bc_init_lr_decay": False, "bc_init_lr_warmup": 0.0,
+    "bc_init_log_std_lr_scale": 1.0, "bc_init_fit_log_std": False,
+}
+"""Preset long-warm-start: the former default warm start, 3000 steps at a constant lr 1e-3."""
+
+
+DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "bc_init_lr": 1e-2, "bc_init_lr_warmup": 0.2}
+"""Preset deep-warm-start: the fast warm start with the rate rising linearly to 1e-2 over the first 20% of the
+steps, then decaying to 0 (the default's schedule, with the fast warm start's log std: 10x and fitted)."""
+
+
+def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor,
+            prev_actions: torch.Tensor | None = None,
+            codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked mean negative log-likelihood over a (T, B) block of whole episodes.
+
+    ``prev_actions`` (a_{t-1} as the environment carried it out) defaults to
+    the shifted ``actions``; ``codes`` (B, K) one-hot, for a policy with codes."""
+    feats = episode_features(policy, obs, shift_actions(actions) if prev_actions is None else prev_actions, mask)
+    return _nll(policy, policy.dist(feats, codes), actions, mask)
+
+
+def episode_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor,
+                     mask: torch.Tensor) -> torch.Tensor:
+    """The policy's encoder over a (T, B) block of whole episodes, from a zero state."""
+    return policy.features(obs, prev_actions, policy.initial_state(mask.shape[1], mask.device),
+                           first_step_starts(mask))[0]
+
+
+def first_step_starts(mask: torch.Tensor) -> torch.Tensor:
+    """Episode starts (T, B) of whole episodes: the first step of each column."""
+    starts = torch.zeros_like(mask)
+    starts[0] = True
+    return starts
+
+
+def _nll(policy: GaussianPolicy, dist, actions: torch.Tensor,
+         mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    m = mask.to(actions.dtype)
+    nll = -(dist.log_prob(actions).sum(-1) * m).sum() / m.sum()
+    mse = (((dist.mean - actions) ** 2).sum(-1) * m).sum() / m.sum()
+    return nll, {"bc/nll": nll.item(), "bc/action_mse": mse.item(), "bc/log_std": policy.log_std.mean().item()}
+
+
+def demo_batch(data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
+               generator: torch.Generator) -> tuple[PaddedEpisodes, torch.Tensor, torch.Tensor]:
+    """A random batch of whole demonstration episodes, their previous actions and their indices."""
+    n_ep = data.mask.shape[1]
+    idx = torch.randint(n_ep, (min(batch_episodes, n_ep),), generator=generator).to(data.mask.device)
+    return data.select(idx), prev_actions[:, idx], idx
+
+
+class MixtureAssignment:
+    """Which code clones which demonstration episode: balanced responsibilities (K, E) over the
+    *whole* demonstration set, recomputed from the policy every ``refresh`` calls of :meth:`update`.
+
+    Balancing each random batch on its own (every code takes 1/K of the batch) forces episodes
+    of whatever mode the batch over-samples onto other codes, most often the code of the most
+    similar mode; with 6 modes and 64 episodes a batch holds 10.7 +- 3 episodes per mode, so each
+    code keeps learning a share of its neighbour's behaviour and the policy drifts onto the
+    neighbouring circle in 5-15% of its episodes.  Balancing over all episodes has no such noise.
+    """
+
+    def __init__(self, data: PaddedEpisodes, prev_actions: torch.Tensor, refresh: int = 10, chunk: int = 256) -> None:
+        self.data, self.prev_actions, self.refresh, self.chunk = data, prev_actions, refresh, chunk
+        self.responsibilities: torch.Tensor | None = None
+        self._calls = 0
+
+    def update(self, policy: GaussianPolicy) -> torch.Tensor:
+        """The current responsibilities (K, E), recomputed on every ``refresh``-th call."""
+        if self.responsibilities is None or self._calls % self.refresh == 0:
+            self.responsibilities = balanced_responsibilities(episode_log_likelihoods(policy, self.data,
+                                                                                      self.prev_actions, self.chunk))
+        self._calls += 1
+        return self.responsibilities
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The calls made and the responsibilities of the last refresh (empty before the first): what a
+        resumed run needs to refresh at the same steps from the same values (``RunLoop.start``'s ``carried``)."""
+        resp = self.responsibilities if self.responsibilities is not None else torch.empty(0, 0)
+        return {"calls": torch.tensor(self._calls), "responsibilities": resp.detach().clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        calls, resp = state["calls"], state["responsibilities"]
+        if not (isinstance(calls, torch.Tensor) and calls.numel() == 1 and not calls.is_floating_point()
+                and int(calls) >= 0 and isinstance(resp, torch.Tensor) and resp.ndim == 2):
+            raise ValueError("the code assignment's state is damaged")
+        episodes = self.data.mask.shape[1]
+        if resp.numel() and (resp.shape[1] != episodes or not resp.is_floating_point()):
+            raise ValueError(f"the code assignment covers {resp.shape[1]} episodes, not the {episodes} demonstrated")
+        self._calls = int(calls)
+        self.responsibilities = resp.to(self.data.mask.device) if resp.numel() else None
+
+
+@torch.no_grad()
+def episode_log_likelihoods(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor,
+                            chunk: int = 256) -> torch.Tensor:
+    """Each whole episode's log-likelihood under each of the policy's codes, (K, E)."""
+    out = []
+    for start in range(0, data.mask.shape[1], chunk):
+        idx = torch.arange(start, min(start + chunk, data.mask.shape[1]), device=data.mask.device)
+        part = data.select(idx)
+        out.append(_code_log_likelihoods(
+            policy.dist_every_code(episode_features(policy, part.observations, prev_actions[:, idx], part.mask)), part))
+    return torch.cat(out, dim=1)
+
+
+def _code_log_likelihoods(dist_every_code, data: PaddedEpisodes) -> torch.Tensor:
+    """(K, B): each whole episode's log-likelihood under each code."""
+    m = data.mask.to(data.observations.dtype)
+    return (dist_every_code.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)
+
+
+def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisodes, generator: torch.Generator,
+             num_codes: int = 0, mixture: bool = False, responsibilities: torch.Tensor | None = None,
+             codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Behaviour-cloning loss of a batch of whole demonstration episodes from the policy's encoder
+    features on them (:func:`episode_features`).  A policy with latent codes gets a random code per
+    episode (demonstrations carry none), or, with ``mixture``, the codes' mixture likelihood
+    (:func:`mixture_bc_loss`), each episode weighted by the given ``responsibilities`` (K, B)
+    (:class:`MixtureAssignment`), or by responsibilities balanced within the batch.  ``codes``
+    (B, width): each episode's own code vector instead (continuous codes, :class:`EpisodeCodes`)."""
+    if codes is not None:
+        return _nll(policy, policy.dist(features, codes), batch.actions, batch.mask)
+    if mixture:
+        loss, _, stats = _mixture_nll(policy, policy.dist_every_code(features), batch, responsibilities)
+        return loss, stats
+    b = batch.mask.shape[1]
+    codes = (F.one_hot(torch.randint(num_codes, (b,), generator=generator), num_codes).float().to(features.device)
+             if num_codes else None)
+    return _nll(policy, policy.dist(features, codes), batch.actions, batch.mask)
+
+
+def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
+                 generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
+                 assignment: MixtureAssignment | None = None,
+                 codes_of: Callable[[torch.Tensor], torch.Tensor] | None = None,
+                 ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Behaviour-cloning loss (:func:`demo_nll`) on a random batch of whole demonstration episodes;
+    with ``mixture`` and an ``assignment``, each episode is cloned by the codes it assigns; with
+    ``codes_of``, episode ``i`` under the code vector ``codes_of(i)`` (continuous codes: each
+    episode's own, :class:`EpisodeCodes`, whose batch rows then learn too; or random ones)."""
+    batch, prev, idx = demo_batch(data, prev_actions, batch_episodes, generator)
+    resp = assignment.update(policy)[:, idx] if mixture and assignment is not None else None
+    return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator, num_codes,
+                    mixture, resp, codes_of(idx) if codes_of is not None else None)
+
+
+def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
+            batch_episodes: int, generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
+            assignment: MixtureAssignment | None = None,
+            codes_of: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict[str, float]:
+    """One update of :func:`demo_bc_loss`."""
+    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes, generator, num_codes, mixture, assignment,
+                               codes_of)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return stats
+
+
+def mixture_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes,
+                    prev_actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    """Behaviour cloning of unlabelled episodes by a mixture of the policy's K codes (EM).
+
+    Each episode's log-likelihood under each code, L_k = sum_t log pi(a_t | b_t, k), gives
+    responsibilities q (K, B); the loss is -sum_k q_k L_k per step, so each code clones the
+    episodes it is responsible for.  The responsibilities are balanced so that every code
+    is responsible for 1/K of the batch (Sinkhorn iterations on the whole-episode
+    log-likelihoods): the code prior is uniform, and without balancing the code that
+    starts out slightly better takes every episode and the others never learn.
+    Returns (loss per step, responsibilities, stats)."""
+    feats = episode_features(policy, data.observations, prev_actions, data.mask)
+    return _mixture_nll(policy, policy.dist_every_code(feats), data)
+
+
+def _mixture_nll(policy: GaussianPolicy, dist_every_code, data: PaddedEpisodes,
+                 resp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    m = data.mask.to(data.observations.dtype)
+    ll = _code_log_likelihoods(dist_every_code, data)
+    resp = balanced_responsibilities(ll.detach()) if resp is None else resp
+    loss = -(resp * ll).sum() / m.sum()
+    return loss, resp, {"bc/nll": loss.item(), "bc/responsibility_max": resp.max(0).values.mean().item(),
+                        "bc/log_std": policy.log_std.mean().item()}
+
+
+@torch.no_grad()
+def fit_log_std(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor,
+                mixture: bool = False, codes: torch.Tensor | None = None) -> dict[str, float]:
+    """Set the policy's state-independent log std to its maximum-likelihood value given its
+    means on all demonstration steps: log std_d = 0.5 log mean_t (a_td - mu_td)^2.  With
+    ``mixture``, each code's squared errors count with its balanced responsibility for the
+    episode (those of :func:`mixture_bc_loss`, under the std before the fit); a policy with
+    codes but no mixture counts every code alike (the expectation under a random code).
+    ``codes`` (E, width): each episode's own code (continuous codes, :class:`EpisodeCodes`).
+    Returns the demonstrations' NLL per step after the fit (with ``mixture``) and the log std."""
+    feats = episode_features(policy, data.observations, prev_actions, data.mask)
+    m = data.mask.to(data.actions.dtype)
+    if codes is not None:
+        sq = (policy.dist(feats, codes).mean - data.actions) ** 2
+    elif policy.arch.num_codes:
+        dist, k = policy.dist_every_code(feats), policy.arch.num_codes
+        resp = _mixture_nll(policy, dist, data)[1] if mixture else torch.full((k, m.shape[1]), 1 / k, device=m.device)
+        sq = (resp[:, None, :, None] * (dist.mean - data.actions.unsqueeze(0)) ** 2).sum(0)
+    else:
+        sq = (policy.dist(feats).mean - data.actions) ** 2
+    var = (sq * m.unsqueeze(-1)).sum((0, 1)) / m.sum()
+    policy.log_std.copy_(0.5 * var.clamp_min(1e-12).log())
+    stats = {"bc/log_std": policy.log_std.mean().item()}
+    if mixture and policy.arch.num_codes:
+        stats["bc/nll"] = _mixture_nll(policy, policy.dist_every_code(feats), data)[0].item()
+    return stats
+
+
+class EpisodeCodes(nn.Module):
+    """Each demonstration episode's own continuous code, (E, d): the continuous counterpart of the
+    codes' mixture (:class:`MixtureAssignment`).
+
+    The codes start at the episodes' first d principal components (:func:`principal_components`)
+    and are then fitted with the policy by the demonstrations' likelihood (each episode's actions
+    under its own code); every few steps they are moved onto the prior by their ranks
+    (:func:`pomil.nn.codes.spread_as_prior`), so the demonstrations' codes spread exactly as the
+    codes that rollouts draw, as the mixture gives every code 1/K of the episodes.  Why the
+    principal components: from random codes the fit folds the code line (circles whose radius
+    varies: codes -0.9 and +0.9 both drew radius 6.3-6.6, code 0 radius 3.4; Spearman 0.13),
+    a local optimum it does not leave; the first component of the circles' episodes alone has
+    |Spearman| 0.98 with their radius.  A module, so that a run's checkpoint keeps them."""
+
+    def __init__(self, data: PaddedEpisodes, dim: int, prior: str) -> None:
+        super().__init__()
+        self.prior = prior
+        self.codes = nn.Parameter(spread_as_prior(principal_components(data, dim), prior))
+
+    @torch.no_grad()
+    def spread_(self) -> None:
+        self.codes.copy_(spread_as_prior(self.codes, self.prior))
+
+
+@torch.no_grad()
+def principal_components(data: PaddedEpisodes, dim: int) -> torch.Tensor:
+    """Each whole episode's scores (E, dim) on the first ``dim`` principal components of its
+    observations and actions, flattened over time (steps past an episode's end count as zeros),
+    each column standardised first."""
+    m = data.mask.unsqueeze(-1).to(data.observations.dtype)
+    x = (torch.cat([data.observations, data.actions], -1) * m).transpose(0, 1).flatten(1)  # (E, T * (obs + act))
+    x = x - x.mean(0)
+    x = x / x.std(0, correction=0).clamp_min(1e-8)  # constant columns (one episode, unused steps) stay 0
+    u, s, _ = torch.linalg.svd(x.double(), full_matrices=False)
+    scores = (u[:, :dim] * s[:dim]).to(x.dtype)
+    if scores.shape[1] < dim:  # fewer components than dimensions (tiny sets): zeros, spread by index
+        scores = torch.cat([scores, scores.new_zeros(len(scores), dim - scores.shape[1])], 1)
+    return scores
+
+
+def balanced_responsibilities(scores: torch.Tensor, iterations: int = 50) -> torch.Tensor:
+    """Soft assignment (K, B) of B items to K codes, each item's column summing to 1 and
+    each code's row to B / K, close to softmax(scores) over codes (log-domain Sinkhorn)."""
+    k, b = scores.shape
+    log_q = scores - scores.max()
+    for _ in range(iterations):
+        log_q = log_q - torch.logsumexp(log_q, 1, keepdim=True) + math.log(b / k)
+        log_q = log_q - torch.logsumexp(log_q, 0, keepdim=True)
+    return log_q.exp()
+
+
+@torch.no_grad()
+def most_likely_codes(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> torch.Tensor:
+    """Each episode's most likely code under the policy, (E,)."""
+    return mixture_bc_loss(policy, data, prev_actions)[1].argmax(0)
+
+
+def episodes_within(max_steps: int, episode_steps: int) -> int:
+    """Whole episodes of ``episode_steps`` in ``max_steps`` steps, at least one."""
+    return max(1, max_steps // max(int(episode_steps), 1))
+
+
+def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_prev: torch.Tensor,
+                       mixture: bool) -> MixtureAssignment | None:
+    """The dataset-wide code assignment of the mixture warm start and BC term (None: balanced per batch),
+    refreshed every 10 steps or once per pass over the episodes, whichever is rarer: the refresh (one
+    forward pass over every episode) then costs at most about a third of the training steps between."""
+    if not (mixture and cfg.mixture_balance == "dataset"):
+        return None
+    return MixtureAssignment(expert, expert_prev, refresh=max(10, math.ceil(expert.mask.shape[1] / cfg.bc_init_batch)))
+
+
+CODE_SPREAD_EVERY = 10
+"""Warm-start steps between moves of the episodes' continuous codes onto the prior (EpisodeCodes.spread_)."""
+
+
+def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor,
+                                cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
+                                episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
+    """The warm start's behaviour cloning with continuous codes: each episode under a random code
+    from the prior (InfoGAIL), or under its own code in ``episode_codes``, fitted with the policy
+    (its own learning rate, bc_init_code_lr_scale x bc_init_lr) and spread as the prior every
+    ``CODE_SPREAD_EVERY`` steps and at the end; then the log std's fit (``bc_init_fit_log_std``)."""
+    opt, decay = warm_start_optimizer(policy, cfg, episode_codes)
+    if episode_codes is not None:
+        codes_of = lambda idx: episode_codes.codes[idx]  # noqa: E731
+    else:
+        codes_of = lambda idx: sample_prior(cfg.code_prior, len(idx), policy.arch.num_codes,  # noqa: E731
+                                            gen).to(idx.device)
+    stats: dict[str, float] = {}
+    for step in range(1, cfg.bc_init_iterations + 1):
+        with precision_context(cfg.precision, expert.mask.device):
+            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
+        decay.step()
+        if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
+            episode_codes.spread_()
+        check_warm_start_step(guard, f"warm-start step {step}", stats, policy)
+    if cfg.bc_init_fit_log_std:
+        codes = (episode_codes.codes.detach() if episode_codes is not None
+                 else codes_of(torch.arange(expert.mask.shape[1], device=expert.mask.device)))
+        stats.update(fit_log_std(policy, expert, expert_prev, codes=codes))
+    return stats
+
+
+def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
+                         mixture: bool, cfg: AdversarialConfig, gen: torch.Generator,
+                         guard: DivergenceGuard | None = None, where: str = "") -> dict[str, float]:
+    """The policy's part of :func:`bc_warm_start`: ``bc_init_iterations`` behaviour-cloning steps
+    (the codes' mixture, or random codes), then the log std's fit (``bc_init_fit_log_std``).
+    Returns the last step's stats; ``where`` prefixes the step in a divergence's message."""
+    opt, decay = warm_start_optimizer(policy, cfg)
+    stats: dict[str, float] = {}
+    assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
+    for step in range(1, cfg.bc_init_iterations + 1):
+        with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
+            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
+        decay.step()
+        check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
+    if cfg.bc_init_fit_log_std:
+        stats.update(fit_log_std(policy, expert, expert_prev, mixture))
+    return stats
+
+
+def check_warm_start_step(guard: DivergenceGuard | None, at: str, stats: dict[str, float],
+                          policy: GaussianPolicy) -> None:
+    """The divergence guard's checks after a warm-start step ``at``: its loss, the policy's gradients and weights."""
+    if guard is not None:
+        guard.value(at, "warm-start loss (negative log-likelihood)", stats["bc/nll"])
+        guard.grads(at, "warm-start policy", policy.parameters())
+        guard.params(at, {"warm-start policy": policy})
+
+
+def warm_start_optimizer(policy: GaussianPolicy, cfg: AdversarialConfig, episode_codes: EpisodeCodes | None = None,
+                         ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    """Adam over the policy, its log std at ``bc_init_log_std_lr_scale`` times ``bc_init_lr`` (and
+    the episodes' continuous codes at ``bc_init_code_lr_scale`` times), and the schedule to step
+    after each update: a linear rise over the first ``bc_init_lr_warmup`` of the steps, then a linear
+    decay to 0 over the rest (``bc_init_lr_decay``)."""
+    rest = [p for name, p in policy.named_parameters() if name != "log_std"]
+    groups = [{"params": rest}, {"params": [policy.log_std], "lr": cfg.bc_init_lr * cfg.bc_init_log_std_lr_scale}]
+    if episode_codes is not None:
+        groups.append({"params": [episode_codes.codes], "lr": cfg.bc_init_lr * cfg.bc_init_code_lr_scale})
+    opt = torch.optim.Adam(groups, lr=cfg.bc_init_lr)
+    steps, rise = cfg.bc_init_iterations, int(cfg.bc_init_lr_warmup * cfg.bc_init_iterations)
+
+    def factor(i: int) -> float:  # the learning rate of step i + 1, as a fraction of bc_init_lr
+        if i < rise:
+            return (i + 1) / rise
+        return 1 - (i - rise) / max(steps - rise, 1) if cfg.bc_init_lr_decay else 1.0
+    return opt, torch.optim.lr_scheduler.LambdaLR(opt, factor)
