@@ -292,3 +292,31 @@ def test_reproduce_circles_continuous_tiny_writes_metrics_table_and_figure(tmp_p
     assert "| 1 |" in (out / "table.md").read_text()
     assert (out / "figure.png").stat().st_size > 1000
     assert TrainedPolicy.load(out / "infogail-pomdp.pt").code_dim == 1
+
+
+@pytest.mark.parametrize("hidden, args, hint", [
+    ("minari", ["demos", "import-minari", "pomil/x-v0", "--out", "x.npz"], "pip install 'pomil[minari]'"),
+    ("minari", ["demos", "export-minari", "DEMOS", "--dataset-id", "pomil/x-v0"], "pip install 'pomil[minari]'"),
+    ("ray", ["reproduce", "circles", "--seeds", "1", "--ray", "--out", "r"], "pip install 'pomil[ray]'"),
+])
+def test_a_missing_extra_is_a_one_line_hint(hidden, args, hint, demos_path, tmp_path, monkeypatch, capsys):
+    """Without the extra (its module hidden, as if not installed): one line naming the extra to install, for a
+    package user and for a source checkout, exit status 2, nothing written."""
+    monkeypatch.setitem(sys.modules, hidden, None)  # `import minari` / `import ray` now raise ImportError
+    monkeypatch.chdir(tmp_path)
+    code = main([str(demos_path) if a == "DEMOS" else a for a in args])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert hint in err and f"pip install -e '.[{hidden}]'" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_version_is_the_packages():
+    import pomil
+
+    r = pomil_cli = subprocess.run([sys.executable, "-m", "pomil.cli", "--version"], capture_output=True, text=True,
+                                   timeout=120)
+    assert pomil_cli.returncode == 0 and r.stdout.strip() == f"pomil {pomil.__version__}"
+    from importlib.metadata import version
+
+    assert version("pomil") == pomil.__version__  # one source: the installed metadata read it from the package

@@ -22,6 +22,7 @@ import numpy as np
 
 from pomil.config import check_values, field_help, field_interval, field_names, from_dict, load_config_file, option
 from pomil.errors import PomilError
+from pomil.parallel import require_ray
 
 
 # ----------------------------------------------------------- configs <-> flags
@@ -441,6 +442,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         reproduce_hopper,
     )
 
+    if getattr(args, "ray", None):
+        require_ray()  # before any demonstrations or runs are written
     if args.experiment == "merge":
         from pomil.reproduce import merge_task_results
 
@@ -469,6 +472,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from pomil.sweep import SweepConfig, sweep
 
     cfg: SweepConfig = config_from_args(SweepConfig, args)
+    if cfg.ray:
+        require_ray()
     data = sweep(cfg, args.sweep_config, args.grid or [])
     return 1 if data["failed"] else 0
 
@@ -629,6 +634,9 @@ def _add_reproduce(sub: argparse._SubParsersAction) -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pomil",
                                 description="Multi-modal imitation learning in partially observable environments.")
+    from pomil import __version__
+
+    p.add_argument("--version", action="version", version=f"pomil {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_demos(sub)
     _add_experts(sub)

@@ -1,6 +1,7 @@
 """Minari datasets (the Farama standard for offline RL data) <-> pomil demonstrations.
 
-Optional extra: ``pip install -e '.[minari]'`` (minari with its HDF5 backend).
+Optional extra: ``pip install 'pomil[minari]'`` (minari with its HDF5 backend; in a source checkout
+``pip install -e '.[minari]'``).
 Nothing is downloaded: datasets are read from and written to Minari's local
 folder (``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``) or the
 ``root`` given here.
@@ -46,8 +47,8 @@ def _minari():
     try:
         import minari
     except ImportError:
-        raise PomilError("Minari support is an optional extra: pip install -e '.[minari]' "
-                         "(or pip install 'minari[hdf5]')") from None
+        raise PomilError("Minari support is an optional extra: pip install 'pomil[minari]' (in a source checkout: "
+                         "pip install -e '.[minari]')") from None
     return minari
 
 
@@ -76,9 +77,10 @@ def export_minari(demos: Demonstrations, dataset_id: str, root: str | Path | Non
     it wrote, so no half-written dataset is left behind.
     """
     import gymnasium as gym
+
+    minari = _minari()  # first: without the extra, its one-line hint rather than an import error
     from minari.data_collector import EpisodeBuffer
 
-    minari = _minari()
     md = demos.metadata
     env_id, kwargs = md.get("env_id"), dict(md.get("env_kwargs") or {})
     if not env_id:

@@ -1,4 +1,4 @@
-"""Many runs at once: in local worker processes, or on Ray (optional extra: ``pip install -e '.[ray]'``).
+"""Many runs at once: in local worker processes, or on Ray (optional extra: ``pip install 'pomil[ray]'``).
 
 :func:`run_jobs` calls a module-level function once per job: one after
 another in this process, in ``workers`` spawned processes on this machine
@@ -57,6 +57,16 @@ def usable_cpus() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # macOS, Windows
         return os.cpu_count() or 1
+
+
+def require_ray() -> Any:
+    """The ray module; a one-line PomilError naming the extra when it is not installed."""
+    try:
+        import ray
+    except ImportError:
+        raise PomilError("running on Ray is an optional extra: pip install 'pomil[ray]' (in a source checkout: "
+                         "pip install -e '.[ray]')") from None
+    return ray
 
 
 def submission_order(costs: Sequence[float]) -> list[int]:
@@ -120,10 +130,7 @@ def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
     """The jobs as Ray tasks, costliest first (``address``: an existing cluster; None starts a local Ray here and
     stops it afterwards)."""
     total = len(jobs)
-    try:
-        import ray as ray_lib
-    except ImportError:
-        raise PomilError("running on Ray is an optional extra: pip install -e '.[ray]' (or pip install ray)") from None
+    ray_lib = require_ray()
     started = not ray_lib.is_initialized()
     if started:
         try:
