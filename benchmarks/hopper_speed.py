@@ -25,7 +25,7 @@ Prints env-steps/s of:
    the same task (Hopper-v5, paper setting, positions only), ``--peer-envs`` envs in
    SB3's ``DummyVecEnv``, SB3's defaults except ``n_steps`` (so that a rollout is
    ``--peer-envs`` x 256 steps), ``--iterations`` rollouts each.  The last lines
-   print each InfoGAIL-POMDP training row / the batched simulator (issue 15: at least
+   print each InfoGAIL-POMDP training row / the batched simulator (the target was at least
    50%) and / each peer (at least 3x SB3 PPO), from this one run.
 
     .venv/bin/python benchmarks/hopper_speed.py [--num-envs 256] [--iterations 3] [--device cpu]
@@ -186,9 +186,9 @@ def main() -> None:
         print(f"{name:70s} {v:12,.0f} {v / base:16.2f}x")
     print("\n".join(share_lines))
     if not peers and args.peer_envs:
-        print("peers: not measured (pip install -e '.[bench]' for SB3 and sb3-contrib)")
+        print("peers: not measured (pip install 'pomil[bench]' or, in a checkout, pip install -e '.[bench]' for SB3 and sb3-contrib)")
     sim = rows[0][1]
-    for what, v in ours:  # the ratios of issue 15, from this one run
+    for what, v in ours:  # the speed targets' ratios, from this one run
         print(f"{what} / batched simulator: {v / sim:.0%}")
         for name in peers:
             peer = next(p for n, p in rows if n.startswith(name))

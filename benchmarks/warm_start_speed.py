@@ -5,8 +5,8 @@ learners' behaviour-cloning warm start, with its posterior steps) once per recip
 
 * ``default``: ``AdversarialConfig``'s warm start (600 Adam steps, lr rising to 1e-2 over the
   first 20%, then decaying to 0; the log std at the network's rate, not fitted);
-* ``long``: the ``long-warm-start`` preset (3000 steps at a constant lr 1e-3, the default
-  until 2026-12);
+* ``long``: the ``long-warm-start`` preset (3000 steps at a constant lr 1e-3, the former
+  default);
 * ``fast``: the ``fast-warm-start`` preset (600 steps, lr 3e-3 decaying to 0, the log std
   at 10x and fitted in closed form at the end);
 * ``deep``: the ``deep-warm-start`` preset (600 steps, lr rising to 1e-2 over the first 20%,
