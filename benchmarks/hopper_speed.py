@@ -186,7 +186,8 @@ def main() -> None:
         print(f"{name:70s} {v:12,.0f} {v / base:16.2f}x")
     print("\n".join(share_lines))
     if not peers and args.peer_envs:
-        print("peers: not measured (pip install 'pomil[bench]' or, in a checkout, pip install -e '.[bench]' for SB3 and sb3-contrib)")
+        print("peers: not measured (pip install 'pomil[bench]', in a checkout pip install -e '.[bench]', "
+              "for SB3 and sb3-contrib)")
     sim = rows[0][1]
     for what, v in ours:  # the speed targets' ratios, from this one run
         print(f"{what} / batched simulator: {v / sim:.0%}")
