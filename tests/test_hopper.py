@@ -68,8 +68,8 @@ def test_cli_expert_and_infogail_pomdp_smoke(tmp_path, capsys):
     run = tmp_path / "ip"
     assert main(["train", "infogail-pomdp", "--demos", str(DEMOS), "--out", str(run), "--iterations", "2",
                  "--num-envs", "8",
-                 "--bc-init-iterations", "2", "--eval-every", "1", "--eval-episodes", "2", "--critic-batch", "8",
-                 "--no-progress"]) == 0
+                 "--bc-init-iterations", "2", "--posterior-init-iterations", "2", "--eval-every", "1",
+                 "--eval-episodes", "2", "--critic-batch", "8", "--no-progress"]) == 0
     header = (run / "metrics.csv").read_text().splitlines()[0]
     assert "eval/forward/normalised_return" in header and "eval/backward/progress" in header
     capsys.readouterr()

@@ -88,6 +88,7 @@ def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypa
     r = subprocess.run([sys.executable, "-m", "pomil.cli", "train", "infogail-pomdp", "--demos", str(out),
                         "--iterations", "1",
                         "--num-envs", "2", "--minibatches", "2", "--bc-init-iterations", "1",
+                        "--posterior-init-iterations", "1",
                         "--out", str(tmp_path / "run"), "--no-progress"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

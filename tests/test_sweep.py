@@ -18,7 +18,8 @@ def pomil(*args, cwd=None):
 def test_sweep_on_local_ray_reports_failures_and_skips_finished_runs(tmp_path, demos_path):
     config = tmp_path / "sweep.json"
     config.write_text(json.dumps({"learner": "infogail-pomdp", "demos": str(demos_path), "iterations": 2, "num_envs": 8,
-                                  "bc_init_iterations": 2, "eval_every": 0, "hidden_size": 16}))
+                                  "bc_init_iterations": 2, "posterior_init_iterations": 2, "eval_every": 0,
+                                  "hidden_size": 16}))
     out = tmp_path / "sweep"
     # cuda:7 passes the config check but cannot run here (nor on a 1-GPU machine): that run fails.
     args = ("sweep", config, "--seeds", 1, "--grid", "device=cpu,cuda:7", "--out", out, "--episodes-per-code", 4)

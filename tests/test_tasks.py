@@ -175,8 +175,8 @@ def test_cli_any_task_experts_record_merge_train_evaluate(tmp_path):
     m = Demonstrations.load(tmp_path / "m.npz")
     assert m.obs_dim == 1 and m.metadata["observation_mask"] == [0] and m.states.shape[1] == 3
     r = pomil("train", "infogail-pomdp", "--demos", tmp_path / "m.npz", "--iterations", 2, "--num-envs", 4,
-              "--bc-init-iterations", 2, "--eval-every", 1, "--eval-episodes", 2, "--out", tmp_path / "run",
-              "--no-progress")
+              "--bc-init-iterations", 2, "--posterior-init-iterations", 2, "--eval-every", 1, "--eval-episodes", 2,
+              "--out", tmp_path / "run", "--no-progress")
     assert r.returncode == 0, r.stderr
     header = (tmp_path / "run" / "metrics.csv").read_text().splitlines()[0]
     assert "eval/a/normalised_return" in header and "eval/b/progress" in header
@@ -221,7 +221,7 @@ def test_training_overrides_remask_full_observations_and_replace_env_keywords(tm
     r = pomil("train", "infogail-pomdp", "--demos", path, "--observation-mask", "0,5,6",
               "--env-kwargs", "max_episode_steps=16",
               "--iterations", 1, "--num-envs", 2, "--minibatches", 2, "--bc-init-iterations", 1, "--eval-every", 0,
-              "--out", tmp_path / "r",
+              "--posterior-init-iterations", 1, "--out", tmp_path / "r",
               "--no-progress")
     assert r.returncode == 0, r.stderr
     from pomil.api import TrainedPolicy
