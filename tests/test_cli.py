@@ -320,3 +320,14 @@ def test_version_is_the_packages():
     from importlib.metadata import version
 
     assert version("pomil") == pomil.__version__  # one source: the installed metadata read it from the package
+
+
+def test_the_warm_start_shows_its_progress(demos_path, tmp_path, capsys):
+    """The warm start and the posterior's warm-up each draw a bar with their loss (on stderr, as the run's own)."""
+    args = ["train", "infogail-pomdp", "--demos", str(demos_path), "--out", str(tmp_path / "run"), *TINY_ADVERSARIAL]
+    assert main([*args[:-1], "--bc-init-iterations", "4", "--posterior-init-iterations", "3", "--progress"]) == 0
+    err = capsys.readouterr().err
+    assert "warm start: 100%" in err and "4/4" in err and "nll=" in err
+    assert "posterior warm start: 100%" in err and "3/3" in err and "loss=" in err
+    assert main([*args, "--out", str(tmp_path / "quiet")]) == 0  # --no-progress: no bars
+    assert "warm start" not in capsys.readouterr().err

@@ -519,6 +519,15 @@ def write_json(path: str | Path, obj: Any) -> None:
     atomic_write(Path(path), lambda f: f.write(data))
 
 
+def progress_bar(total: int, desc: str, enabled: bool) -> Any:
+    """A tqdm bar on stderr for a long step before or beside the run loop's own (the warm start, the
+    posterior's warm-up); drawn as the run loop's: every 0.5 s on a terminal, every 5 s otherwise."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, disable=not enabled, dynamic_ncols=True, file=sys.stderr,
+                mininterval=0.5 if sys.stderr.isatty() else 5.0)
+
+
 # -------------------------------------------------------------------- run loop
 class RunLoop:
     """One run of a learner in its run directory: everything BC, experts and adversarial

@@ -78,7 +78,15 @@ from pomil.rl.collect import collect
 from pomil.rl.gae import gae
 from pomil.rl.ppo import masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
-from pomil.training import DivergenceGuard, RunLoop, load_checkpoint, lr_hint, native_bfloat16, precision_context
+from pomil.training import (
+    DivergenceGuard,
+    RunLoop,
+    load_checkpoint,
+    lr_hint,
+    native_bfloat16,
+    precision_context,
+    progress_bar,
+)
 
 # The defaults are the recipe measured best (README "Defaults"; the paper's text is the
 # ``paper-text`` preset).  Each choice was found by measurement:
@@ -680,17 +688,20 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
     post_opt = torch.optim.Adam(post.parameters(), lr=cfg.bc_init_lr)
     starts = first_step_starts(expert.mask)
     s: dict[str, float] = {}
-    for _ in range(cfg.posterior_init_iterations):
-        idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
-        targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
-        with precision_context(cfg.precision, starts.device):
-            loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
-                               starts[:, idx], expert.mask[:, idx], targets)
-        if guard is not None:
-            guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
-        post_opt.zero_grad(set_to_none=True)
-        loss.backward()
-        post_opt.step()
+    with progress_bar(cfg.posterior_init_iterations, "posterior warm start", cfg.progress) as bar:
+        for _ in range(cfg.posterior_init_iterations):
+            idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
+            targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
+            with precision_context(cfg.precision, starts.device):
+                loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
+                                   starts[:, idx], expert.mask[:, idx], targets)
+            if guard is not None:
+                guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
+            post_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            post_opt.step()
+            bar.set_postfix(loss=f"{s['posterior/loss']:.4g}", refresh=False)
+            bar.update()
     return s
 
 

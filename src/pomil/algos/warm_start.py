@@ -21,7 +21,7 @@ from torch import nn
 from pomil.data import PaddedEpisodes
 from pomil.nn.codes import sample_prior, spread_as_prior
 from pomil.nn.policy import GaussianPolicy, shift_actions
-from pomil.training import DivergenceGuard, precision_context
+from pomil.training import DivergenceGuard, precision_context, progress_bar
 
 if TYPE_CHECKING:
     from pomil.algos.adversarial import AdversarialConfig
@@ -340,13 +340,16 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
         codes_of = lambda idx: sample_prior(cfg.code_prior, len(idx), policy.arch.num_codes,  # noqa: E731
                                             gen).to(idx.device)
     stats: dict[str, float] = {}
-    for step in range(1, cfg.bc_init_iterations + 1):
-        with precision_context(cfg.precision, expert.mask.device):
-            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
-        decay.step()
-        if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
-            episode_codes.spread_()
-        check_warm_start_step(guard, f"warm-start step {step}", stats, policy)
+    with progress_bar(cfg.bc_init_iterations, "warm start", cfg.progress) as bar:
+        for step in range(1, cfg.bc_init_iterations + 1):
+            with precision_context(cfg.precision, expert.mask.device):
+                stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
+            decay.step()
+            if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
+                episode_codes.spread_()
+            check_warm_start_step(guard, f"warm-start step {step}", stats, policy)
+            bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
+            bar.update()
     if cfg.bc_init_fit_log_std:
         codes = (episode_codes.codes.detach() if episode_codes is not None
                  else codes_of(torch.arange(expert.mask.shape[1], device=expert.mask.device)))
@@ -363,11 +366,15 @@ def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_
     opt, decay = warm_start_optimizer(policy, cfg)
     stats: dict[str, float] = {}
     assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
-    for step in range(1, cfg.bc_init_iterations + 1):
-        with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
-            stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture, assignment)
-        decay.step()
-        check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
+    with progress_bar(cfg.bc_init_iterations, f"{where}warm start", cfg.progress) as bar:
+        for step in range(1, cfg.bc_init_iterations + 1):
+            with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
+                stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture,
+                                assignment)
+            decay.step()
+            check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
+            bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
+            bar.update()
     if cfg.bc_init_fit_log_std:
         stats.update(fit_log_std(policy, expert, expert_prev, mixture))
     return stats
