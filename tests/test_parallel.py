@@ -1,7 +1,6 @@
 """run_jobs without Ray: jobs in spawned worker processes on one torch thread each, costliest first."""
 
 import os
-import time
 
 import pytest
 
@@ -66,7 +65,6 @@ def test_local_workers_report_a_failed_job_or_raise_its_error():
 def _die(i: int) -> int:
     if i == 1:
         os._exit(3)  # a worker killed (out of memory, a signal): no exception to send back
-    time.sleep(0.2)
     return i
 
 
