@@ -202,15 +202,19 @@ def _coerce_named(value: Any, tp: Any, key: str, named: dict[str, int]) -> Any:
                           f"got {value!r}") from None
 
 
+def _reject_unknown(values: dict[str, Any], names: list[str], source: str) -> None:
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise PomilError(f"{source}: unknown key(s) {unknown}; valid keys are: {', '.join(names)}")
+
+
 def check_values(cls: type, values: dict[str, Any], source: str) -> None:
     """Check every key of ``values`` (a config file's) on its own, before flags override any of them: a
     known key (old names read), a value of the field's type within its interval; one-line ConfigError or
     PomilError naming ``source`` otherwise."""
     values = _renamed(cls, values, source, note=False)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(values) - set(fields))
-    if unknown:
-        raise PomilError(f"{source}: unknown key(s) {unknown}; valid keys are: {', '.join(fields)}")
+    _reject_unknown(values, list(fields), source)
     hints = _resolved_types(cls)
     for key, value in values.items():
         if key == "preset" and value == AUTO:
@@ -231,12 +235,7 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
     and a ``preset`` field) gets the named preset's values first; the dict's own
     values override them."""
     values = _renamed(cls, values, source)
-    names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
-    unknown = sorted(set(values) - set(names))
-    if unknown:
-        raise PomilError(
-            f"{source}: unknown key(s) {unknown}; valid keys are: {', '.join(names)}"
-        )
+    _reject_unknown(values, [f.name for f in dataclasses.fields(cls)], source)  # type: ignore[arg-type]
     presets: dict[str, dict[str, Any]] = getattr(cls, "PRESETS", {})
     if presets:
         name = values.get("preset", _default_of(cls, "preset"))

@@ -78,23 +78,28 @@ def set_generator_states(rngs: Sequence[np.random.Generator], states: Any) -> No
             raise ValueError(f"an environment generator's state is damaged ({type(err).__name__})") from None
 
 
-def env_state(seed: int | None, rng_states: list[str]) -> dict[str, Any]:
-    """A batched env's checkpointed state: the seed its next reset still takes (None once taken) and the
-    per-copy generators' states, which draw every later reset's initial states."""
-    return {"seed": seed, "generators": rng_states}
+class SimState:
+    """``state_dict`` / ``load_state_dict`` of a batched env over a :class:`BatchedSim` (``sim``) whose first
+    reset takes a pending seed (``_seed``, None once taken): what a checkpoint keeps, so that a resumed run's
+    episodes start where the uninterrupted run's would have."""
+
+    sim: Any
+    _seed: int | None
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"seed": self._seed, "generators": self.sim.rng_states()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if not isinstance(state, dict) or set(state) != {"seed", "generators"}:
+            raise ValueError("the environment's state is not {seed, generators}")
+        seed = state["seed"]
+        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool)):
+            raise ValueError(f"the environment's pending seed is {seed!r}, not an integer")
+        self.sim.set_rng_states(state["generators"])
+        self._seed = seed
 
 
-def env_seed(state: Any) -> int | None:
-    """The pending seed of an :func:`env_state`; ValueError when it is not one."""
-    if not isinstance(state, dict) or set(state) != {"seed", "generators"}:
-        raise ValueError("the environment's state is not {seed, generators}")
-    seed = state["seed"]
-    if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool)):
-        raise ValueError(f"the environment's pending seed is {seed!r}, not an integer")
-    return seed
-
-
-class TorchVecEnv:
+class TorchVecEnv(SimState):
     """Torch face of a NumPy batched simulator (:class:`HopperSim`,
     :class:`pomil.envs.batch.GymSim`), with an optional observation mask.
 
@@ -124,16 +129,6 @@ class TorchVecEnv:
         seed = self._seed if seed is None else seed
         self._seed = None  # seeded once; later resets continue the generators
         return self._obs(self.sim.reset(seed))
-
-    def state_dict(self) -> dict[str, Any]:
-        """What a checkpoint keeps (:func:`env_state`), so that a resumed run's episodes start where the
-        uninterrupted run's would have."""
-        return env_state(self._seed, self.sim.rng_states())
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        seed = env_seed(state)
-        self.sim.set_rng_states(state["generators"])
-        self._seed = seed
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         obs, reward, term, trunc = self.sim.step(actions.detach().to("cpu", torch.float64).numpy())

@@ -41,7 +41,7 @@ import torch
 from gymnasium.utils.seeding import np_random
 
 from pomil.envs.locomotion import HOPPER_DEFAULTS, HOPPER_ID
-from pomil.envs.vec import env_seed, env_state, generator_states, set_generator_states
+from pomil.envs.vec import SimState, generator_states, set_generator_states
 from pomil.errors import PomilError
 
 INSTALL_HINT = "pip install 'pomil[gpu]' (mujoco-warp==4.0.0)"
@@ -300,7 +300,7 @@ class WarpSim:
         self._graph = None
 
 
-class WarpVecEnv:
+class WarpVecEnv(SimState):
     """The torch env training steps (the interface of :class:`pomil.envs.vec.TorchVecEnv`) on a :class:`WarpSim`.
 
     ``reset() -> obs (N, d)``; ``step(actions) -> (obs, reward, terminated,
@@ -326,15 +326,6 @@ class WarpVecEnv:
         seed = self._seed if seed is None else seed
         self._seed = None  # seeded once; later resets continue the generators
         return self._view(self.sim.reset(seed))
-
-    def state_dict(self) -> dict[str, Any]:
-        """As :meth:`pomil.envs.vec.TorchVecEnv.state_dict`."""
-        return env_state(self._seed, self.sim.rng_states())
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        seed = env_seed(state)
-        self.sim.set_rng_states(state["generators"])
-        self._seed = seed
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         obs, reward, terminated, truncated = self.sim.step(actions.detach())
