@@ -19,8 +19,7 @@ from pathlib import Path
 from pomil.algos.adversarial import train_adversarial
 from pomil.demos import record_circles_demos
 from pomil.envs.circles import make_spec
-from pomil.learners import ADVERSARIAL
-from pomil.reproduce import CirclesReproConfig, adversarial_config
+from pomil.learners import ADVERSARIAL, LEARNERS
 
 
 def main() -> None:
@@ -37,9 +36,8 @@ def main() -> None:
         print(f"{'learner':16s} {'env-steps/s':>12s} {'rollout':>8s} {'critic':>8s} {'posterior':>9s} {'ppo':>6s}")
         for learner in ADVERSARIAL:
             out = Path(tmp) / learner
-            cfg = adversarial_config(CirclesReproConfig(demos=demos, adversarial_iterations=args.iterations,
-                                                        progress=False),
-                                     learner, 0, out)
+            cfg = LEARNERS[learner].make_config({"demos": demos, "iterations": args.iterations, "out": str(out),
+                                                 "progress": False})
             train_adversarial(replace(cfg, eval_every=0, bc_init_iterations=0, update_mode=args.update_mode))
             with open(out / "metrics.csv", newline="") as f:
                 last = list(csv.DictReader(f))[-1]

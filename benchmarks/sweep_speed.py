@@ -42,7 +42,7 @@ def main() -> None:
             subprocess.run([sys.executable, "-m", "pomil.cli", "sweep", str(config), "--seeds", str(args.seeds), mode,
                             "--out", str(out)], check=True, stdout=subprocess.DEVNULL)
             walls[mode] = time.perf_counter() - t0
-            summaries[mode] = json.loads((out / "sweep.json").read_text())["summary"]["base"]
+            summaries[mode] = json.loads((out / "metrics.json").read_text())["rows"]["base"]["summary"]
     print(f"{args.seeds} seeds x InfoGAIL-POMDP on circles, {args.iterations} iterations each")
     print(f"Ray sweep (local, 1 CPU per run):  {walls['--ray']:7.1f} s")
     print(f"one after another (--no-ray):       {walls['--no-ray']:7.1f} s")

@@ -2,8 +2,8 @@
 # The second locomotion task: HalfCheetah-v5 Forward/Backward with positions only,
 # end to end with the generic commands (any Gymnasium id works the same way):
 # two PPO experts, their demonstrations merged into one unlabeled set, and the
-# Hopper protocol (pomil reproduce tasks) for InfoGAIL-POMDP, 3 seeds (about 21 min on 2 cores).
-# Usage: bash scripts/halfcheetah.sh [extra `pomil reproduce tasks` flags, e.g. --seeds 1]
+# spec halfcheetah (pomil reproduce halfcheetah): InfoGAIL-POMDP, 3 seeds (about 21 min on 2 cores).
+# Usage: bash scripts/halfcheetah.sh [extra `pomil reproduce` flags, e.g. --seeds 1]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -21,5 +21,4 @@ if [ ! -f data/halfcheetah-paper.npz ]; then
   done
   $pomil demos merge runs/demos/halfcheetah-forward.npz runs/demos/halfcheetah-backward.npz --out data/halfcheetah-paper.npz
 fi
-$pomil reproduce tasks --demos data/halfcheetah-paper.npz --out results/halfcheetah --runs runs/halfcheetah \
-  --learners infogail-pomdp --seeds 3 "$@"
+$pomil reproduce halfcheetah "$@"

@@ -2,10 +2,10 @@
 # Speed modes: where the belief should matter.  Three PPO experts hop forward at three target
 # speeds (pomil/HopperSpeed-v0: Hopper-v5 paid -|v_x - target| instead of v_x), 256-step episodes
 # that do not end when unhealthy.  Their positions-only demonstrations are merged without labels,
-# and `pomil reproduce tasks` trains BC-MLP, BC-GRU, InfoGAIL (MLP) and InfoGAIL-POMDP on them and
+# and the hopper-speed spec (`pomil reproduce hopper-speed`) trains BC-MLP, BC-GRU, InfoGAIL (MLP) and InfoGAIL-POMDP on them and
 # scores every code by speed (on-task share, purity, speed error) and normalised return.
 # Positions alone do not show a speed: a policy has to infer it from the history.
-# Usage: bash scripts/hopper_speed.sh [extra `pomil reproduce tasks` flags, e.g. --seeds 1 --ray]
+# Usage: bash scripts/hopper_speed.sh [extra `pomil reproduce` flags, e.g. --seeds 1 --ray]
 # Writes runs/results/hopper-speed (the committed copy: results/hopper-speed, with --out results/hopper-speed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -20,7 +20,7 @@ for v in $SPEEDS; do
     bash scripts/ship_expert.sh "runs/experts/hopper-speed-$v" "hopper-speed-$v"
   fi
 done
-demos=runs/demos/hopper-speed.npz
+demos=data/hopper-speed.npz
 if [ ! -f "$demos" ]; then
   recordings=()
   for v in $SPEEDS; do
@@ -30,5 +30,4 @@ if [ ! -f "$demos" ]; then
   done
   $pomil demos merge "${recordings[@]}" --out "$demos"
 fi
-$pomil reproduce tasks --demos "$demos" --out runs/results/hopper-speed --runs runs/hopper-speed \
-  --learners bc-mlp,bc-gru,infogail,infogail-pomdp --seeds 3 "$@"
+$pomil reproduce hopper-speed "$@"

@@ -89,28 +89,89 @@ def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     (tmp_path / "adv.json").write_text(json.dumps({"bc_init_iterations": 3, "num_envs": 8, "hidden_size": 16}))
     (tmp_path / "bc.json").write_text(json.dumps({"hidden_size": 8, "obs_delta": True}))
     args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
-            "--learners", "bc-mlp,bc-gru,gail", "--adversarial-iterations", 2,
+            "--rows", "bc-mlp,bc-gru,gail,infogail-pomdp", "--adversarial-iterations", 2,
             "--adversarial-config", tmp_path / "adv.json", "--bc-config", tmp_path / "bc.json",
             "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz", "--no-progress")
     r = pomil(*args)
     assert r.returncode == 0, r.stderr
+    assert "recording" in r.stdout and (tmp_path / "d.npz").exists()  # the spec's recipe, into --demos
     bc_run = json.loads((tmp_path / "runs" / "bc-gru" / "seed1" / "config.json").read_text())
     assert (bc_run["hidden_size"], bc_run["obs_delta"], bc_run["iterations"], bc_run["policy"]) == (8, True, 5, "gru")
-    # --resume-runs: every run is finished, so none trains again and the figures are the same
-    checkpoints = {p: p.read_bytes() for p in (tmp_path / "runs").glob("*/seed*/checkpoint.pt")}
-    first = json.loads((out / "metrics.json").read_text())["learners"]
-    r = pomil(*args, "--resume-runs")
-    assert r.returncode == 0, r.stderr
-    assert len(checkpoints) == 6 and all(p.read_bytes() == b for p, b in checkpoints.items())
-    again = json.loads((out / "metrics.json").read_text())["learners"]
-    assert {k: v["summary"] for k, v in again.items()} == {k: v["summary"] for k, v in first.items()}
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["learners"]) == {"bc-mlp", "bc-gru", "gail"}
-    assert len(metrics["learners"]["bc-gru"]["runs"]) == 2
-    settings = metrics["adversarial_settings"]
+    assert list(metrics["rows"]) == ["bc-mlp", "bc-gru", "gail", "infogail-pomdp"]
+    assert [run["train_seed"] for run in metrics["rows"]["bc-gru"]["runs"]] == [0, 1]
+    assert metrics["spec"]["name"] == "circles" and metrics["spec"]["overrides"]["bc"]["iterations"] == 5
+    settings = metrics["rows"]["infogail-pomdp"]["config"]
     assert settings["gradient_penalty"] == 10.0 and settings["bc_init_iterations"] == 3 and settings["iterations"] == 2
-    assert "| bc-mlp | 0/2 |" in (out / "table.md").read_text()  # one code: never every mode
+    assert "| bc-mlp | 2 | 0/2 |" in (out / "table.md").read_text()  # one code: never every mode
     assert (out / "figure.png").stat().st_size > 1000
+    assert [p.name for p in (out / "policies").iterdir()] == ["infogail-pomdp-seed0.pt"]  # the spec keeps one
+    with __import__("numpy").load(out / "rollouts.npz") as roll:
+        assert {"experts/positions", "bc-mlp/positions", "infogail-pomdp/groups"} <= set(roll.files)
+    # --resume: every run is finished with the same settings, so none trains again and the figures are the same
+    checkpoints = {p: p.read_bytes() for p in (tmp_path / "runs").glob("*/seed*/checkpoint.pt")}
+    r = pomil(*args, "--resume")
+    assert r.returncode == 0, r.stderr
+    assert len(checkpoints) == 8 and all(p.read_bytes() == b for p, b in checkpoints.items())
+    again = json.loads((out / "metrics.json").read_text())["rows"]
+    assert {k: v["summary"] for k, v in again.items()} == {k: v["summary"] for k, v in metrics["rows"].items()}
+
+
+def test_reproduce_any_spec_file_with_continuous_codes(tmp_path):
+    """A spec of one's own: a continuous code on circles of varying radius, scored by code against radius."""
+    (tmp_path / "spec.toml").write_text("""
+description = "tiny continuous codes"
+seeds = 2
+policies = "first"
+[[rows]]
+name = "igp-continuous"
+learner = "infogail-pomdp"
+[rows.settings]
+code_kind = "continuous"
+iterations = 1
+bc_init_iterations = 3
+num_envs = 6
+hidden_size = 8
+posterior_init_iterations = 2
+eval_every = 0
+[demos]
+file = "d.npz"
+record = "circles --modes one --radius-range 3,7 --episodes 20"
+[evaluation]
+code_values = 3
+episodes_per_value = 2
+""")
+    r = subprocess.run([sys.executable, "-m", "pomil.cli", "reproduce", "spec.toml", "--no-progress", "--jobs", "1"],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "runs" / "results" / "spec"  # the default places
+    metrics = json.loads((out / "metrics.json").read_text())
+    row = metrics["rows"]["igp-continuous"]
+    assert row["kind"] == "code-radius" and len(row["runs"]) == 2 and row["config"]["code_kind"] == "continuous"
+    assert row["successes"] == sum(abs(r["spearman"]) >= 0.9 for r in row["runs"])
+    assert "| igp-continuous | 1 |" in (out / "table.md").read_text()
+    assert (out / "figure.png").stat().st_size > 1000
+    assert TrainedPolicy.load(out / "policies" / "igp-continuous-seed0.pt").code_dim == 1
+    assert (tmp_path / "runs" / "spec" / "igp-continuous" / "seed1" / "result.json").exists()
+
+
+@pytest.mark.parametrize("text, message", [
+    ("seeds = 2\nlearners = ['bc']", "no demonstrations"),
+    ("learners = ['bc']\nsed = 2\n[demos]\nfile = 'd.npz'", "unknown key(s) ['sed']"),
+    ("learners = ['bc', 'bc']\n[demos]\nfile = 'd.npz'", "rows named twice: ['bc']"),
+    ("learners = ['bc']\nseeds = 0\n[demos]\nfile = 'd.npz'", "key 'seeds': expected an integer >= 1, got 0"),
+    ("[[rows]]\nlearner = 'gail'\nsettings = { lrr = 1 }\n[demos]\nfile = 'd.npz'", "unknown key(s) ['lrr']"),
+    ("[[rows]]\nlearner = 'gail'\nsettings = { lr = -1 }\n[demos]\nfile = 'd.npz'", "config key 'lr'"),
+    ("learners = ['bc'\n", "not valid TOML"),
+    ("learners = ['bc']\n[demos]\nfile = 'missing.npz'", "missing.npz: demonstrations not found"),
+])
+def test_a_bad_spec_is_one_line_before_anything_runs(tmp_path, text, message):
+    (tmp_path / "bad.toml").write_text(text)
+    r = subprocess.run([sys.executable, "-m", "pomil.cli", "reproduce", "bad.toml"], capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)
+    assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "bad.toml" in r.stderr or "missing.npz" in r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
 
 
 def _with(demos_path, tmp_path, name, **changes):
@@ -274,24 +335,6 @@ def test_cli_smoke_continuous_codes_demos_train_evaluate_plot(tmp_path):
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
     r = pomil("demos", "circles", "--radius-range", "7,3", "--out", tmp_path / "x.npz")
     assert r.returncode == 2 and "config key 'radius_range'" in r.stderr and len(r.stderr.strip().splitlines()) == 1
-
-
-def test_reproduce_circles_continuous_tiny_writes_metrics_table_and_figure(tmp_path):
-    out = tmp_path / "results"
-    (tmp_path / "adv.json").write_text(json.dumps({"bc_init_iterations": 3, "num_envs": 6, "hidden_size": 8,
-                                                   "posterior_init_iterations": 2, "eval_every": 0}))
-    r = pomil("reproduce", "circles-continuous", "--seeds", 2, "--adversarial-iterations", 1,
-              "--adversarial-config", tmp_path / "adv.json", "--demo-episodes", 20, "--code-values", 3,
-              "--episodes-per-value", 2, "--out", out, "--runs", tmp_path / "runs", "--demos", tmp_path / "d.npz",
-              "--no-progress")
-    assert r.returncode == 0, r.stderr
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert len(metrics["runs"]) == 2 and metrics["radius_range"] == [3.0, 7.0]
-    assert metrics["adversarial_settings"]["code_kind"] == "continuous"
-    assert metrics["summary"]["successes"] == sum(abs(r["spearman"]) >= 0.9 for r in metrics["runs"])
-    assert "| 1 |" in (out / "table.md").read_text()
-    assert (out / "figure.png").stat().st_size > 1000
-    assert TrainedPolicy.load(out / "infogail-pomdp.pt").code_dim == 1
 
 
 @pytest.mark.parametrize("hidden, args, hint", [

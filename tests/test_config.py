@@ -15,11 +15,11 @@ from pomil.algos.expert import ExpertConfig
 from pomil.cli import CirclesDemosConfig, HopperDemosConfig, MergeDemosConfig, RecordDemosConfig, main
 from pomil.config import Interval, field_interval, from_dict
 from pomil.errors import ConfigError
-from pomil.reproduce import CirclesReproConfig, HopperReproConfig
+from pomil.experiment import ReproduceOptions
 from pomil.sweep import SweepConfig
 
 CONFIGS = [AdversarialConfig, BCConfig, ExpertConfig, CirclesDemosConfig, HopperDemosConfig, RecordDemosConfig,
-           MergeDemosConfig, SweepConfig, CirclesReproConfig, HopperReproConfig]
+           MergeDemosConfig, SweepConfig, ReproduceOptions]
 
 
 @pytest.mark.parametrize("cls", CONFIGS, ids=lambda c: c.__name__)

@@ -10,10 +10,12 @@ from pomil.algos.adversarial import AdversarialConfig, train_adversarial
 from pomil.api import TrainedPolicy
 from pomil.cli import main
 from pomil.config import from_dict, resolved
+from pomil.data import Demonstrations
 from pomil.envs.circles import Circle, CirclesSpec
 from pomil.errors import PomilError
 from pomil.eval.circles import evaluate_circles
-from pomil.reproduce import MODES_CASES, CirclesReproConfig, adversarial_config, modes_success
+from pomil.experiment import load_spec, modes_success
+from pomil.learners import LEARNERS
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,8 +38,10 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
                 p.bc_init_log_std_lr_scale, p.bc_init_fit_log_std) == warm_start, name
     assert cfg.mixture_balance == "dataset"
     assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "auto")
-    # a reproduction adds only the run's own fields to the defaults (auto: the circles' default preset)
-    repro = adversarial_config(CirclesReproConfig(), "infogail-pomdp", 3, tmp_path)
+    # the circles experiment adds only the run's own fields to the defaults (auto: the circles' default preset)
+    spec = load_spec("circles")
+    row = next(r for r in spec.rows if r.learner == "infogail-pomdp")
+    repro = LEARNERS["infogail-pomdp"].make_config({**spec.values(row), "out": str(tmp_path), "seed": 3})
     plain = AdversarialConfig(demos=repro.demos, out=str(tmp_path), seed=3)
     assert repro.preset == "default" and repro == resolved(plain) == dataclasses.replace(plain, preset="default")
 
@@ -140,12 +144,22 @@ def test_train_on_terminating_demonstrations_records_the_preset_it_ran(standard_
                  "--iterations", "2", "--hidden-size", "8", "--no-progress", "--resume"]) == 0
 
 
-def test_circle_through_origin_and_every_modes_case_is_a_valid_set():
+def test_circle_through_origin_and_every_modes_case_records_its_set(tmp_path, monkeypatch):
     c = Circle.through_origin(210, 5.0, -1)
     assert abs(c.center[0] + 5.0 * 3 ** 0.5 / 2) < 1e-9 and abs(c.center[1] + 2.5) < 1e-9
-    assert {len(v) for v in MODES_CASES.values()} == {2, 3, 4, 5, 6}
-    for circles in MODES_CASES.values():
-        CirclesSpec(circles)  # each passes through the origin
+    monkeypatch.chdir(tmp_path)
+    modes = {}
+    for row in load_spec("circles-modes").rows:  # each recorded the spec's way, 100 episodes per mode
+        record = [*row.demos.record[:row.demos.record.index("--episodes")], "--episodes", "60"]
+        assert main(["demos", *record, "--out", f"{row.name}.npz"]) == 0
+        spec = CirclesSpec.from_dict(Demonstrations.load(f"{row.name}.npz").metadata["env_kwargs"])
+        modes[row.name] = len(spec.circles)
+    assert modes == {"two": 2, "four": 4, "three": 3, "five": 5, "six": 6}
+    five = CirclesSpec.from_dict(Demonstrations.load("five.npz").metadata["env_kwargs"]).circles
+    assert five[1] == Circle.through_origin(90, 6.0, 1) and five[2] == Circle.through_origin(270, 5.0, -1)
+    assert main(["demos", "circles", "--circles", "90:4", "--out", "bad.npz"]) == 2
+    assert main(["demos", "circles", "--circles", "45:4:1,90:4:2", "--out", "bad.npz"]) == 2
+    assert not Path("bad.npz").exists()
 
 
 def test_modes_success_needs_purity_coverage_and_nmi():
@@ -157,18 +171,18 @@ def test_modes_success_needs_purity_coverage_and_nmi():
     assert not modes_success({**good, "modes_covered": 2})
 
 
-def test_reproduce_circles_modes_tiny(tmp_path):
+def test_reproduce_circles_modes_tiny(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     (tmp_path / "adv.json").write_text(json.dumps({"iterations": 1, "num_envs": 4, "hidden_size": 8,
                                                    "bc_init_iterations": 2,
                                                    "posterior_init_iterations": 1, "critic_batch": 4, "eval_every": 0}))
     out = tmp_path / "results"
-    assert main(["reproduce", "circles-modes", "--seeds", "1", "--cases", "two,three", "--episodes-per-mode", "4",
-                 "--episodes-per-code", "3", "--adversarial-config", str(tmp_path / "adv.json"), "--out", str(out),
-                 "--runs", str(tmp_path / "runs"), "--no-progress"]) == 0
+    assert main(["reproduce", "circles-modes", "--seeds", "1", "--cases", "two,three", "--episodes-per-code", "3",
+                 "--adversarial-config", "adv.json", "--out", str(out), "--runs", "runs", "--no-progress"]) == 0
     results = json.loads((out / "metrics.json").read_text())
-    assert list(results["cases"]) == ["two", "three"] and results["cases"]["three"]["modes"] == 3
-    assert len(results["cases"]["two"]["runs"]) == 1 and "success" in results["cases"]["two"]["runs"][0]
-    assert "| three | 3 |" in (out / "table.md").read_text()
+    assert list(results["rows"]) == ["two", "three"] and results["rows"]["three"]["demos"] == "data/circles-three.npz"
+    assert len(results["rows"]["two"]["runs"]) == 1 and "success" in results["rows"]["two"]["runs"][0]
+    assert "| three | 3 |" in (out / "table.md").read_text() and "| case | modes |" in (out / "table.md").read_text()
 
 
 def _default_run(demos_path, out, **overrides):

@@ -3,7 +3,6 @@
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 
 from pomil.api import TrainedPolicy
@@ -87,34 +86,32 @@ def test_reproduce_hopper_smoke_with_override(tmp_path):
                                     "posterior_init_iterations": 2,
                                     "eval_every": 1, "eval_episodes": 2}))
     out = tmp_path / "results"
-    assert main(["reproduce", "hopper", "--seeds", "1", "--learners", "bc-mlp,infogail-pomdp", "--bc-iterations", "2",
+    assert main(["reproduce", "hopper", "--seeds", "1", "--rows", "bc-mlp,infogail-pomdp", "--bc-iterations", "2",
                  "--adversarial-iterations", "1", "--adversarial-config", str(override), "--episodes-per-code", "2",
                  "--demos", str(DEMOS), "--out", str(out), "--runs", str(tmp_path / "runs"), "--no-progress"]) == 0
     results = json.loads((out / "metrics.json").read_text())
-    assert results["adversarial_settings"]["num_envs"] == 8  # the user's file, not only the recipe
-    ip = results["learners"]["infogail-pomdp"]
-    assert ip["curves"][0]["env_steps"] == [0.0, 8 * 128.0]  # after the warm start, then after iteration 1
-    assert results["adversarial_settings"]["bc_init_codes"] == "mixture"  # the Hopper recipe under the user's file
-    assert set(ip["runs"][0]["tasks"]) == {"forward", "backward"}
+    ip = results["rows"]["infogail-pomdp"]
+    assert ip["config"]["num_envs"] == 8  # the user's file, not only the recipe
+    assert ip["runs"][0]["curve"]["env_steps"] == [0.0, 8 * 128.0]  # after the warm start, then after iteration 1
+    assert ip["config"]["bc_init_codes"] == "mixture"  # the Hopper recipe under the user's file
+    assert set(ip["runs"][0]["tasks"]) == {"forward", "backward"} and results["setting"] == "paper"
     assert (out / "table.md").exists() and (out / "figure.png").exists()
-    assert (out / "policies" / "infogail-pomdp-seed0.pt").exists()
+    assert sorted(p.name for p in (out / "policies").iterdir()) == ["bc-mlp-seed0.pt", "infogail-pomdp-seed0.pt"]
 
 
 def test_standard_setting_records_from_the_shipped_standard_experts(tmp_path):
-    """The paper-setting experts fall soon after step 128; the standard setting has experts of its own."""
-    from pomil.reproduce import HopperReproConfig, hopper_demos
+    """The paper-setting experts fall soon after step 128; the standard setting has experts of its own
+    (the hopper-standard spec's recipe, with fewer episodes)."""
+    from pomil.experiment import DemosSource, load_spec
 
-    path = hopper_demos(HopperReproConfig(setting="standard", demos=str(tmp_path / "std.npz"), demo_episodes=2))
+    record = load_spec("hopper-standard").rows[0].demos.record
+    assert record == ("hopper", "--setting", "standard")
+    path = DemosSource(str(tmp_path / "std.npz"), (*record, "--episodes", "2")).ensure()
     demos = Demonstrations.load(path)
     assert demos.metadata["setting"] == "standard" and demos.num_episodes == 4
     assert demos.metadata["expert_returns"]["forward"] > 1500 and demos.metadata["expert_returns"]["backward"] > 1500
     assert demos.episode_lengths.max() > 128
     assert "N(0, 0.1^2) action noise (DART)" in demos.metadata["merged_from"][0]["source"]  # the setting's noise
-    clean = hopper_demos(HopperReproConfig(setting="standard", demos=str(tmp_path / "c.npz"), demo_episodes=1,
-                                           demo_action_noise=0))
-    assert "DART" not in Demonstrations.load(clean).metadata["merged_from"][0]["source"]
-    with pytest.raises(ValueError, match="demo_action_noise"):
-        HopperReproConfig(setting="standard", demo_action_noise=-0.5)
 
 
 def test_cli_demos_hopper_records_with_the_settings_action_noise_and_experts(tmp_path, capsys):
@@ -146,24 +143,24 @@ def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path, capsys):
     import numpy as np
 
     def run(first: int, out: str, iterations: str = "2") -> None:
-        assert main(["reproduce", "hopper", "--seeds", "1", "--first-seed", str(first), "--learners", "bc-mlp",
+        assert main(["reproduce", "hopper", "--seeds", "1", "--first-seed", str(first), "--rows", "bc-mlp",
                      "--bc-iterations", iterations, "--episodes-per-code", "2", "--demos", str(DEMOS),
                      "--out", str(tmp_path / out), "--runs", str(tmp_path / "runs" / out), "--no-progress"]) == 0
 
     run(0, "a")
     run(1, "b")
     b = json.loads((tmp_path / "b" / "metrics.json").read_text())
-    assert [r["train_seed"] for r in b["learners"]["bc-mlp"]["runs"]] == [1]
+    assert [r["train_seed"] for r in b["rows"]["bc-mlp"]["runs"]] == [1]
     assert (tmp_path / "b" / "policies" / "bc-mlp-seed1.pt").exists()
-    assert b["bc_settings"]["iterations"] == 2
+    assert b["rows"]["bc-mlp"]["config"]["iterations"] == 2
     assert main(["reproduce", "merge", str(tmp_path / "b"), str(tmp_path / "a"), "--out", str(tmp_path / "ab")]) == 0
     ab = json.loads((tmp_path / "ab" / "metrics.json").read_text())
     a = json.loads((tmp_path / "a" / "metrics.json").read_text())
-    runs = ab["learners"]["bc-mlp"]["runs"]
-    assert ab["seeds"] == 2 and [r["train_seed"] for r in runs] == [0, 1]
-    assert runs[0] == a["learners"]["bc-mlp"]["runs"][0] and runs[1] == b["learners"]["bc-mlp"]["runs"][0]
+    runs = ab["rows"]["bc-mlp"]["runs"]
+    assert ab["spec"]["seeds"] == 2 and [r["train_seed"] for r in runs] == [0, 1]
+    assert runs[0] == a["rows"]["bc-mlp"]["runs"][0] and runs[1] == b["rows"]["bc-mlp"]["runs"][0]
     values = [r["tasks"]["forward"]["progress"] for r in runs]
-    assert ab["learners"]["bc-mlp"]["summary"]["forward"]["progress"] == [float(np.mean(values)),
+    assert ab["rows"]["bc-mlp"]["summary"]["forward"]["progress"] == [float(np.mean(values)),
                                                                          float(np.std(values))]
     assert sorted(p.name for p in (tmp_path / "ab" / "policies").iterdir()) == ["bc-mlp-seed0.pt", "bc-mlp-seed1.pt"]
     assert "mean ± std over 2 seed(s)" in (tmp_path / "ab" / "table.md").read_text()
@@ -180,17 +177,17 @@ def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path, capsys):
     shutil.copytree(tmp_path / "a", tmp_path / "old")
     shutil.rmtree(tmp_path / "old" / "policies")
     old = json.loads((tmp_path / "old" / "metrics.json").read_text())
-    del old["bc_settings"]["lr"]
+    del old["rows"]["bc-mlp"]["config"]["lr"]
     (tmp_path / "old" / "metrics.json").write_text(json.dumps(old))
     capsys.readouterr()
     assert main(["reproduce", "merge", str(tmp_path / "old"), str(tmp_path / "b"), "--out", str(tmp_path / "z")]) == 2
     assert "bc-mlp-seed0.pt: missing" in capsys.readouterr().err and not (tmp_path / "z").exists()
     assert main(["reproduce", "merge", str(tmp_path / "old"), str(tmp_path / "b"), "--out", str(tmp_path / "z"),
                  "--no-policies"]) == 0
-    assert "bc_settings lr recorded by only one of" in capsys.readouterr().err
+    assert "row bc-mlp: settings lr recorded by only one of" in capsys.readouterr().err
     z = json.loads((tmp_path / "z" / "metrics.json").read_text())
-    assert z["seeds"] == 2 and z["policies_merged"] is False and not (tmp_path / "z" / "policies").exists()
-    assert z["learners"]["bc-mlp"]["runs"] == ab["learners"]["bc-mlp"]["runs"]
+    assert z["spec"]["seeds"] == 2 and z["policies_merged"] is False and not (tmp_path / "z" / "policies").exists()
+    assert z["rows"]["bc-mlp"]["runs"] == ab["rows"]["bc-mlp"]["runs"]
     # the same experts recorded again where floats differ: reference returns 0.5% apart merge with a note and
     # both references kept; 5% apart (other experts or tasks) are refused
     for name, factor in (("near", 1.005), ("far", 1.05)):
@@ -211,7 +208,6 @@ def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path, capsys):
 def test_demo_episodes_default_to_the_settings(tmp_path, monkeypatch, capsys):
     """-1 (the default) records what the committed results were measured on: paper 200, standard 100 per task."""
     import pomil.demos
-    from pomil.reproduce import HopperReproConfig, hopper_demos
 
     asked = []
 
@@ -221,12 +217,8 @@ def test_demo_episodes_default_to_the_settings(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setattr(pomil.demos, "record_hopper_demos", record)
     for setting in ("paper", "standard"):
-        with pytest.raises(ValueError, match="stop here"):
-            hopper_demos(HopperReproConfig(setting=setting, demos=str(tmp_path / f"{setting}.npz")))
         assert main(["demos", "hopper", "--setting", setting, "--out", str(tmp_path / f"c-{setting}.npz")]) == 2
-    assert asked == [("paper", 200), ("paper", 200), ("standard", 100), ("standard", 100)]
+    assert asked == [("paper", 200), ("standard", 100)]
     capsys.readouterr()
     assert main(["demos", "hopper", "--episodes", "0", "--out", str(tmp_path / "z.npz")]) == 2
     assert "--episodes must be -1 (the setting's) or >= 1, got 0" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="demo_episodes"):
-        HopperReproConfig(demo_episodes=0)

@@ -8,7 +8,6 @@ from pomil.cli import build_parser
 from pomil.config import to_dict
 from pomil.errors import PomilError
 from pomil.learners import ABLATIONS, ADVERSARIAL, LEARNERS, learner
-from pomil.reproduce import CirclesReproConfig
 
 
 def test_each_learner_names_its_config_train_function_and_fixed_values():
@@ -43,9 +42,13 @@ def test_the_train_command_has_one_subcommand_per_command_learner():
     assert args.learner == "gail"
 
 
-def test_reproductions_and_lookups_take_the_tables_names_only():
-    assert CirclesReproConfig(learners=tuple(LEARNERS)).learners == tuple(LEARNERS)
-    with pytest.raises(ValueError, match="unknown learners"):
-        CirclesReproConfig(learners=("bc", "dagger"))
+def test_experiments_and_lookups_take_the_tables_names_only():
+    from pomil.experiment import spec_from_dict
+
+    demos = {"file": "d.npz"}
+    assert [r.learner for r in spec_from_dict({"learners": list(LEARNERS), "demos": demos}, "x", "x.toml").rows] \
+        == list(LEARNERS)
+    with pytest.raises(PomilError, match=r"x.toml: rows\[0\]: key 'learner': expected one of .*got 'dagger'"):
+        spec_from_dict({"rows": [{"learner": "dagger"}], "demos": demos}, "x", "x.toml")
     with pytest.raises(PomilError, match="must be one of"):
         learner("dagger")

@@ -26,23 +26,21 @@ def test_sweep_on_local_ray_reports_failures_and_skips_finished_runs(tmp_path, d
     r = pomil(*args)
     assert r.returncode == 1, r.stderr
     assert "FAILED" in r.stdout and "device=cuda:7 seed 0" in r.stdout
-    data = json.loads((out / "sweep.json").read_text())
-    assert data["runs"]["device=cpu seed 0"]["status"] == "done"
-    assert data["runs"]["device=cuda:7 seed 0"]["status"] == "failed"
-    assert "cuda" in data["runs"]["device=cuda:7 seed 0"]["error"].lower()
-    assert data["failed"] == ["device=cuda:7 seed 0"] and data["ray"] is True
-    summary = data["summary"]["device=cpu"]
-    assert summary["seeds"] == 1 and 0.0 <= summary["nmi"][0] <= 1.0 and summary["nmi"][1] == 0.0
+    data = json.loads((out / "metrics.json").read_text())
+    assert len(data["rows"]["device=cpu"]["runs"]) == 1 and data["rows"]["device=cuda:7"]["runs"] == []
+    assert len(data["failed"]) == 1 and data["failed"][0].startswith("device=cuda:7 seed 0: ")
+    assert "cuda" in data["failed"][0].lower() and data["execution"]["ray"] is True
+    summary = data["rows"]["device=cpu"]["summary"]
+    assert 0.0 <= summary["nmi"][0] <= 1.0 and summary["nmi"][1] == 0.0
     table = (out / "table.md").read_text()
-    assert "| device=cpu | 1 |" in table and "failed runs: 1" in table
+    assert "| device=cpu | 2 | " in table and "Failed runs: device=cuda:7 seed 0" in table
     assert (out / "figure.png").read_bytes()[:4] == b"\x89PNG"
     finished = (out / "device=cpu" / "seed0" / "result.json").read_text()
     r = pomil(*args)
-    assert r.returncode == 1 and "1 finished before, skipped; 1 to run" in r.stdout, r.stdout + r.stderr
+    assert r.returncode == 1 and "1 finished before, reused; 1 to run" in r.stdout, r.stdout + r.stderr
     assert (out / "device=cpu" / "seed0" / "result.json").read_text() == finished
-    again = json.loads((out / "sweep.json").read_text())
-    assert again["runs"]["device=cpu seed 0"]["status"] == "skipped (finished before)"
-    assert again["summary"]["device=cpu"]["nmi"] == summary["nmi"]
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["rows"]["device=cpu"]["summary"]["nmi"] == summary["nmi"]
 
 
 @pytest.mark.parametrize("content, grid, text", [
@@ -67,12 +65,12 @@ def test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_results(tmp
 
     shutil.copy(demos_path, tmp_path / "d.npz")
     args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 20, "--episodes-per-code", 10,
-            "--learners", "bc-mlp",
+            "--rows", "bc-mlp",
             "--demos", "d.npz", "--no-progress")
     for flags, name in ((("--jobs", 1), "seq"), (("--jobs", 2), "local"), (("--ray",), "par")):
         r = pomil(*args, *flags, "--out", name, "--runs", f"runs-{name}", cwd=tmp_path)
         assert r.returncode == 0, r.stderr
-    seq, local, par = (json.loads((tmp_path / name / "metrics.json").read_text())["learners"]["bc-mlp"]["runs"]
+    seq, local, par = (json.loads((tmp_path / name / "metrics.json").read_text())["rows"]["bc-mlp"]["runs"]
                        for name in ("seq", "local", "par"))
     assert [(a["per_code"], a["mean_return"]) for a in local] == [(b["per_code"], b["mean_return"]) for b in par]
     for a, b in zip(seq, par, strict=True):
@@ -173,12 +171,12 @@ def test_sweep_of_continuous_codes_reports_the_code_radius_correlation(tmp_path)
     r = pomil("sweep", config, "--no-ray", "--seeds", 1, "--grid", "code_prior=uniform,gaussian", "--out", out,
               "--episodes-per-code", 2)
     assert r.returncode == 0, r.stderr
-    data = json.loads((out / "sweep.json").read_text())
+    data = json.loads((out / "metrics.json").read_text())
     for setting in ("code_prior=uniform", "code_prior=gaussian"):
-        s = data["summary"][setting]
-        assert s["kind"] == "code-radius" and s["seeds"] == 1 and 0 <= s["abs_spearman"][0] <= 1
-    assert data["runs"]["code_prior=gaussian seed 0"]["metrics"]["code_prior"] == "gaussian"
-    assert "| code_prior=uniform | 1 |" in (out / "table.md").read_text()
+        row = data["rows"][setting]
+        assert row["kind"] == "code-radius" and len(row["runs"]) == 1 and 0 <= row["summary"]["abs_spearman"][0] <= 1
+    assert data["rows"]["code_prior=gaussian"]["runs"][0]["code_prior"] == "gaussian"
+    assert "| code_prior=uniform | 0 |" in (out / "table.md").read_text()
 
 
 def test_run_jobs_on_ray_submits_the_costliest_first_and_keeps_job_order(monkeypatch):

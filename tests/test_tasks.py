@@ -250,14 +250,14 @@ def test_reproduce_tasks_and_a_sequential_sweep_on_any_task(tmp_path):
             "eval_episodes": 1}
     (tmp_path / "adv.json").write_text(json.dumps(tiny))
     r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res",
-              "--learners", "infogail-pomdp",
+              "--rows", "infogail-pomdp",
               "--seeds", 1, "--adversarial-iterations", 1, "--episodes-per-code", 1,
               "--adversarial-config", tmp_path / "adv.json",
               "--no-progress", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     metrics = json.loads((tmp_path / "res" / "metrics.json").read_text())
-    assert metrics["experiment"] == "tasks" and metrics["env_id"] == "Pendulum-v1"
-    assert metrics["tasks"] == ["up", "down"]
+    assert metrics["spec"]["name"] == "tasks" and metrics["env_id"] == "Pendulum-v1"
+    assert list(metrics["reference"]["tasks"]) == ["up", "down"]
     # runs/ named after --out
     assert (tmp_path / "runs" / "res" / "infogail-pomdp" / "seed0" / "checkpoint.pt").exists()
     assert (tmp_path / "res" / "figure.png").exists()
@@ -267,11 +267,11 @@ def test_reproduce_tasks_and_a_sequential_sweep_on_any_task(tmp_path):
     r = pomil("sweep", tmp_path / "sweep.json", "--seeds", 2, "--no-ray", "--episodes-per-code", 1,
               "--out", tmp_path / "sw")
     assert r.returncode == 0, r.stderr
-    data = json.loads((tmp_path / "sw" / "sweep.json").read_text())
-    assert data["summary"]["base"]["seeds"] == 2 and set(data["summary"]["base"]["tasks"]) == {"up", "down"}
+    data = json.loads((tmp_path / "sw" / "metrics.json").read_text())
+    assert len(data["rows"]["base"]["runs"]) == 2 and set(data["rows"]["base"]["summary"]) == {"up", "down"}
     assert "up: progress" in (tmp_path / "sw" / "table.md").read_text() and (tmp_path / "sw" / "figure.png").exists()
     r = pomil("reproduce", "tasks", "--out", tmp_path / "x", cwd=tmp_path)
-    assert r.returncode == 2 and "--demos must name" in r.stderr
+    assert r.returncode == 2 and "data/tasks.npz: demonstrations not found" in r.stderr and "--demos" in r.stderr
 
 
 def test_speed_tasks_record_merge_and_score_behaviour_by_speed(tmp_path):
@@ -294,10 +294,10 @@ def test_speed_tasks_record_merge_and_score_behaviour_by_speed(tmp_path):
     assert r.returncode == 0, r.stderr
     m = Demonstrations.load(tmp_path / "m.npz").metadata
     assert set(m["expert_speed"]) == {"speed-0.5", "speed-1.5"}
-    r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res", "--learners", "bc-mlp",
+    r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res", "--rows", "bc-mlp",
               "--seeds", 1, "--episodes-per-code", 3, "--bc-iterations", 2, "--no-progress", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    run = json.loads((tmp_path / "res" / "metrics.json").read_text())["learners"]["bc-mlp"]["runs"][0]
+    run = json.loads((tmp_path / "res" / "metrics.json").read_text())["rows"]["bc-mlp"]["runs"][0]
     shares = run["behaviour"]["code0"]["shares"]
     assert sum(shares.values()) == pytest.approx(1.0) and run["behaviour"]["code0"]["purity"] == max(shares.values())
     for t in ("speed-0.5", "speed-1.5"):  # one code serves both tasks: its shares are the on-task shares

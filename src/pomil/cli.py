@@ -76,6 +76,9 @@ class CirclesDemosConfig:
     modes: Literal["one", "two", "four"] = option("two", "circles preset: one (anti-clockwise around (0, r)), two "
                                                          "(the paper's) or four")
     radius: float = option(5.0, "radius of every circle", within="(0, inf)")
+    circles: tuple[str, ...] = option((), "circles of your own instead of --modes: ANGLE:RADIUS:DIRECTION for each, "
+                                          "centred at ANGLE degrees from the x axis and through the origin, "
+                                          "travelled anti-clockwise (1) or clockwise (-1), e.g. 90:4:1,210:5:-1")
     radius_range: tuple[float, ...] = option((), "R1,R2: each episode's circle gets its own radius, uniform in "
                                                  "[R1, R2] (same tangent and direction; for continuous codes); "
                                                  "the environment's circles take the middle radius", within="(0, inf)")
@@ -102,6 +105,8 @@ def cmd_demos(args: argparse.Namespace) -> int:
     try:
         radius = cfg.radius if radius_range is None else sum(radius_range) / 2
         spec = make_spec(cfg.modes, radius, cfg.episode_length, cfg.history, cfg.action_type)
+        if cfg.circles:
+            spec = dataclasses.replace(spec, circles=tuple(map(_circle, cfg.circles)))
         demos = record_circles_demos(spec, cfg.episodes, cfg.noise_std, cfg.seed, radius_range)
     except ValueError as err:
         raise PomilError(f"demos circles: {err}") from None
@@ -111,6 +116,18 @@ def cmd_demos(args: argparse.Namespace) -> int:
     print(f"wrote {cfg.out}: {demos.num_episodes} episodes x {spec.episode_length} steps, "
           f"{spec.num_modes} modes{radii} (mean expert return {rets})")
     return 0
+
+
+def _circle(text: str) -> Any:
+    """``"90:4:1"`` -> the circle through the origin centred at 90 degrees, radius 4, anti-clockwise."""
+    from pomil.envs.circles import Circle
+
+    try:
+        angle, radius, direction = text.split(":")
+        return Circle.through_origin(float(angle), float(radius), int(direction))
+    except ValueError as err:
+        raise PomilError(f"config key 'circles': expected ANGLE:RADIUS:DIRECTION (e.g. 90:4:1), got {text!r}"
+                         + (f" ({err})" if str(err).startswith("circle") else "")) from None
 
 
 @dataclass(frozen=True)
@@ -431,41 +448,27 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from pomil.reproduce import (
-        CirclesContinuousConfig,
-        CirclesModesConfig,
-        CirclesReproConfig,
-        HopperReproConfig,
-        reproduce_circles,
-        reproduce_circles_continuous,
-        reproduce_circles_modes,
-        reproduce_hopper,
-    )
+    from pomil.experiment import ReproduceOptions, load_spec, merge_results, reproduce, spec_names
 
-    if getattr(args, "ray", None):
-        require_ray()  # before any demonstrations or runs are written
-    if args.experiment == "merge":
-        from pomil.reproduce import merge_task_results
-
-        merge_task_results([Path(r) for r in args.results], Path(args.out), policies=args.policies)
+    if args.list:
+        for name in spec_names():
+            spec = load_spec(name)
+            print(f"{name}: {spec.description}" + (f" (results: {spec.results})" if spec.results else ""))
         return 0
-    if args.experiment == "tasks":
-        cfg = config_from_args(HopperReproConfig, args)
-        if not cfg.demos or not Path(cfg.demos).is_file():
-            raise PomilError("reproduce tasks: --demos must name existing multi-task demonstrations (pomil demos "
-                             f"merge), got {cfg.demos!r}")
-        if not cfg.out:
-            raise PomilError("reproduce tasks: --out is required (the results directory)")
-        reproduce_hopper(cfg)
-    elif args.experiment == "hopper":
-        reproduce_hopper(config_from_args(HopperReproConfig, args))
-    elif args.experiment == "circles-modes":
-        reproduce_circles_modes(config_from_args(CirclesModesConfig, args))
-    elif args.experiment == "circles-continuous":
-        reproduce_circles_continuous(config_from_args(CirclesContinuousConfig, args))
-    else:
-        reproduce_circles(config_from_args(CirclesReproConfig, args))
-    return 0
+    if args.spec is None:
+        raise PomilError("reproduce: give an experiment (a spec file or a name from `pomil reproduce --list`)")
+    if args.spec == "merge":
+        if not args.sources or not args.out:
+            raise PomilError("reproduce merge: give the results directories to join and --out")
+        merge_results([Path(r) for r in args.sources], Path(args.out), policies=args.policies)
+        return 0
+    if args.sources:
+        raise PomilError(f"reproduce {args.spec}: unexpected arguments {args.sources} (one experiment at a time)")
+    opts: ReproduceOptions = config_from_args(ReproduceOptions, args)
+    if opts.ray:
+        require_ray()  # before any demonstrations or runs are written
+    data = reproduce(args.spec, opts)
+    return 1 if data["failed"] else 0
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -593,42 +596,21 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_reproduce(sub: argparse._SubParsersAction) -> None:
-    """``pomil reproduce``: each experiment, and merge."""
-    from pomil.reproduce import CirclesContinuousConfig, CirclesModesConfig, CirclesReproConfig, HopperReproConfig
+    """``pomil reproduce SPEC`` and ``pomil reproduce merge``."""
+    from pomil.experiment import ReproduceOptions
 
-    rp = sub.add_parser("reproduce", help="run a paper experiment end to end")
-    rp_sub = rp.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
-    rc = rp_sub.add_parser("circles", help="demos, train every learner over seeds, evaluate, table and figure")
-    add_config_flags(rc, CirclesReproConfig)
-    rc.set_defaults(func=cmd_reproduce)
-    rm = rp_sub.add_parser("circles-modes",
-                           help="default-settings InfoGAIL-POMDP on circle sets of 2 to 6 modes over seeds: "
-                                                 "success counts and per-seed figures")
-    add_config_flags(rm, CirclesModesConfig)
-    rm.set_defaults(func=cmd_reproduce)
-    rcc = rp_sub.add_parser("circles-continuous",
-                            help="InfoGAIL-POMDP with a continuous code on circles whose radius varies, over seeds: "
-                                 "Spearman rho between code and fitted radius, table and figure")
-    add_config_flags(rcc, CirclesContinuousConfig)
-    rcc.set_defaults(func=cmd_reproduce)
-    rh = rp_sub.add_parser("hopper",
-                           help="Figure 2c: every learner over seeds on the shipped Hopper demos, table and curves")
-    add_config_flags(rh, HopperReproConfig)
-    rh.set_defaults(func=cmd_reproduce)
-    rt = rp_sub.add_parser("tasks",
-                           help="the Hopper protocol on any multi-task demonstrations (--demos, --out; e.g. "
-                                "HalfCheetah)")
-    add_config_flags(rt, HopperReproConfig)
-    rt.set_defaults(func=cmd_reproduce)
-    rj = rp_sub.add_parser("merge", help="join Hopper/tasks reproductions of the same settings run on other seeds "
-                                         "(--first-seed): runs, policies, table and curves over all their seeds")
-    rj.add_argument("results", nargs="+", help="results directories (each with metrics.json and policies/)")
-    rj.add_argument("--out", required=True, help="where the merged metrics.json, table.md, figure.png and policies/ "
-                                                 "go (may be the first results directory)")
-    rj.add_argument("--policies", action=argparse.BooleanOptionalAction, default=True,
-                    help="copy every run's policy into OUT/policies (each must exist); --no-policies joins the "
-                         "metrics alone, for results committed without policies (default: %(default)s)")
-    rj.set_defaults(func=cmd_reproduce)
+    rp = sub.add_parser("reproduce", help="run an experiment spec end to end: demonstrations, every run, table and "
+                                          "figure (--list names the shipped ones)")
+    rp.add_argument("spec", nargs="?", metavar="SPEC",
+                    help="a spec file (.toml) or a shipped experiment's name; 'merge' joins results run on other "
+                         "seeds: pomil reproduce merge DIR DIR ... --out DIR")
+    rp.add_argument("sources", nargs="*", metavar="DIR", help="with merge: the results directories to join")
+    rp.add_argument("--list", action="store_true", help="name the shipped experiments and what each measures")
+    rp.add_argument("--policies", action=argparse.BooleanOptionalAction, default=True,
+                    help="with merge: copy every kept policy into OUT/policies (each must exist); --no-policies "
+                         "joins the metrics alone (default: %(default)s)")
+    add_config_flags(rp, ReproduceOptions)
+    rp.set_defaults(func=cmd_reproduce)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,7 +1,7 @@
 """The one table of learners: name -> config class, train function, help.
 
 ``pomil train <name>``, ``pomil sweep`` (its ``"learner"`` key) and the
-reproductions (``--learners``) all read it.  A learner is a train function
+experiments (a spec's rows) all read it.  A learner is a train function
 with its config class and the config values its name fixes: the three
 adversarial learners are one loop (``algos/adversarial.py``) with
 ``learner`` set; the reproductions' ``bc-mlp`` and ``bc-gru`` are behaviour

@@ -100,17 +100,17 @@ def curves_figure(results: dict):
     return fig
 
 
-def code_radius_figure(rollouts_path: str | Path, path: str | Path, max_paths: int = 120) -> None:
-    """``pomil reproduce circles-continuous``'s figure from its rollouts.npz: the demonstrations
-    coloured by radius, seed 0's trajectories coloured by code value, and code value against
-    fitted radius for every seed (points; lines through each code value's median)."""
+def code_radius_figure(rollouts_path: str | Path, path: str | Path, row: str, max_paths: int = 120) -> None:
+    """A continuous-code experiment's figure from its rollouts.npz: the demonstrations coloured by
+    radius, ``row``'s first seed's trajectories coloured by code value, and code value against
+    fitted radius for every seed of ``row`` (points; lines through each code value's median)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     with np.load(rollouts_path, allow_pickle=False) as r:
-        data = {k: r[k] for k in r.files}
+        data = {k.removeprefix(f"{row}/"): r[k] for k in r.files}
     seeds = sorted({k.split("/")[0] for k in data if k.startswith("seed")}, key=lambda s: int(s[4:]))
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.4))
 
