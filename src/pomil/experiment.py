@@ -45,12 +45,12 @@ import shlex
 import shutil
 import sys
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-import tomllib
 
 from pomil.config import check_fields, load_config_file, option, to_dict
 from pomil.data import Demonstrations, atomic_write

@@ -293,8 +293,8 @@ class AdversarialConfig(RunConfig):
             "bc_init_lr": 1e-3, "bc_init_lr_decay": False, "bc_init_lr_warmup": 0.0, "bc_weight": 0.0,
             "policy_warmup_iterations": 0,
         },
-        # The default warm start before 2026-12 (3000 steps at a constant 1e-3): the committed results measured with
-        # it (results/hopper-long-warm-start, results/circles-ablations, results/halfcheetah, ...) re-run with it.
+        # 3000 steps at a constant 1e-3: the recipe of results/circles-ablations, hopper-speed and some rows of
+        # hopper-variants (their specs name it).
         "long-warm-start": LONG_WARM_START,
         # 600 steps at lr 3e-3 without a rise, the log std at 10x and fitted: the long warm start's fit on the
         # demonstrations (NLL), but a worse closed-loop gait on the paper's Hopper (forward 0.86 against 0.98, 5 seeds).

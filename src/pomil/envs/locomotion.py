@@ -57,7 +57,7 @@ HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper'
 learned to stay healthy past 128 steps, so the standard setting has experts of its own."""
 DEMO_EPISODES = {"paper": 200, "standard": 100}
 """Per setting, the demonstration episodes per task recorded by default (``pomil demos hopper --episodes``,
-``pomil reproduce hopper --demo-episodes``): what the committed results were measured on (the standard
+the hopper and hopper-standard specs' recipes): what the committed results were measured on (the standard
 setting's episodes are up to 1000 steps, against the paper's 128)."""
 DEMO_ACTION_NOISE = {"paper": 0.0, "standard": 0.1}
 """Per setting, the DART action noise (``pomil demos hopper --action-noise``) its demonstrations are recorded with
