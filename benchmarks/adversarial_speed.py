@@ -38,7 +38,7 @@ def main() -> None:
             out = Path(tmp) / learner
             cfg = LEARNERS[learner].make_config({"demos": demos, "iterations": args.iterations, "out": str(out),
                                                  "progress": False})
-            train_adversarial(replace(cfg, eval_every=0, bc_init_iterations=0, update_mode=args.update_mode))
+            train_adversarial(replace(cfg, eval_every=0, warm_start_iterations=0, update_mode=args.update_mode))
             with open(out / "metrics.csv", newline="") as f:
                 last = list(csv.DictReader(f))[-1]
             share = lambda k, last=last: float(last[f"time/share_{k}"])  # noqa: E731

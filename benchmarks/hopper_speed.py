@@ -112,7 +112,7 @@ def training_configs(args: argparse.Namespace, train_envs: list[int],
     configs = []
     for m, threads, precision, encoder, name, over in runs:
         values = {"learner": "infogail-pomdp", "demos": args.demos, "iterations": args.iterations,
-                  "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
+                  "warm_start_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
                   "progress": False, "device": args.device, "num_envs": m, "rollout_threads": threads,
                   "precision": precision, "belief_encoder": encoder, **over}
         try:

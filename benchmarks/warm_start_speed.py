@@ -69,7 +69,7 @@ def measure(demos_path: str, learner: str, seed: int, settings: dict) -> dict[st
     expert = demos.padded("cpu")
     expert = replace(expert, actions=executed_actions_fn(env_id, env_kwargs)(expert.actions))
     prev = shift_actions(expert.actions)
-    mixture = cfg.bc_init_codes == "mixture" and num_codes > 0
+    mixture = cfg.warm_start_codes == "mixture" and num_codes > 0
     gen = torch.Generator().manual_seed(seed)
     precision = precision_context(cfg.precision, torch.device("cpu"))  # as train_adversarial runs it
     t0 = time.perf_counter()
@@ -80,7 +80,7 @@ def measure(demos_path: str, learner: str, seed: int, settings: dict) -> dict[st
     t1 = time.perf_counter()
     if mixture:  # the posterior's steps (the same number in every recipe), timed on their own
         with precision_context(cfg.precision, torch.device("cpu")):
-            bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, bc_init_iterations=0), gen)
+            bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, warm_start_iterations=0), gen)
     return {"seconds": policy_s + time.perf_counter() - t1, "policy_s": policy_s, "nll": nll,
             "log_std": m.policy.log_std.mean().item()}
 

@@ -153,7 +153,7 @@ def training_speed(demos: str, device: str, num_envs: int, iterations: int, sim:
 
     with tempfile.TemporaryDirectory() as tmp:
         values = {"learner": "infogail-pomdp", "demos": demos, "out": tmp, "iterations": iterations,
-                  "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
+                  "warm_start_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
                   "progress": False, "device": device, "num_envs": num_envs, "sim": sim}
         train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
         import csv

@@ -80,14 +80,14 @@ def tiny_runs(out: Path) -> dict[str, tuple[str, Any]]:
     circles, hopper = str(ROOT / "data/circles.npz"), str(ROOT / "data/hopper-paper.npz")
     # The warm start of the defaults when these hashes were recorded (preset long-warm-start; its schedule is a
     # setting, not a code path that refactors touch; pinned so that the recorded hashes of every machine stay valid).
-    tiny = dict(LONG_WARM_START, iterations=2, bc_init_iterations=20, posterior_init_iterations=10, num_envs=16,
+    tiny = dict(LONG_WARM_START, iterations=2, warm_start_iterations=20, posterior_init_iterations=10, num_envs=16,
                 seed=0, progress=False, log_every=1)
     return {
         "circles-infogail-pomdp": ("infogail-pomdp", AdversarialConfig(
             learner="infogail-pomdp", demos=circles, out=str(out / "c"), eval_every=1, eval_episodes=4, **tiny)),
         "circles-paper-text-window": ("infogail-pomdp", AdversarialConfig(
             learner="infogail-pomdp", demos=circles, out=str(out / "w"), eval_every=0, critic_optimizer="rmsprop",
-            weight_clip=0.01, gradient_penalty=0.0, update_mode="window", bc_init_codes="random", bc_weight=0.0,
+            weight_clip=0.01, gradient_penalty=0.0, update_mode="window", warm_start_codes="random", bc_weight=0.0,
             policy_warmup_iterations=0, expert_action_noise=True, **tiny)),
         "circles-gail": ("gail", AdversarialConfig(
             learner="gail", demos=circles, out=str(out / "g"), eval_every=0, policy_warmup_iterations=1, **tiny)),

@@ -86,7 +86,7 @@ def test_every_option_has_help_with_its_default():
 
 def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     out = tmp_path / "results"
-    (tmp_path / "adv.json").write_text(json.dumps({"bc_init_iterations": 3, "num_envs": 8, "hidden_size": 16}))
+    (tmp_path / "adv.json").write_text(json.dumps({"warm_start_iterations": 3, "num_envs": 8, "hidden_size": 16}))
     (tmp_path / "bc.json").write_text(json.dumps({"hidden_size": 8, "obs_delta": True}))
     args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 5, "--episodes-per-code", 5,
             "--rows", "bc-mlp,bc-gru,gail,infogail-pomdp", "--adversarial-iterations", 2,
@@ -102,7 +102,7 @@ def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     assert [run["train_seed"] for run in metrics["rows"]["bc-gru"]["runs"]] == [0, 1]
     assert metrics["spec"]["name"] == "circles" and metrics["spec"]["overrides"]["bc"]["iterations"] == 5
     settings = metrics["rows"]["infogail-pomdp"]["config"]
-    assert settings["gradient_penalty"] == 10.0 and settings["bc_init_iterations"] == 3 and settings["iterations"] == 2
+    assert (settings["gradient_penalty"], settings["warm_start_iterations"], settings["iterations"]) == (10.0, 3, 2)
     assert "| bc-mlp | 2 | 0/2 |" in (out / "table.md").read_text()  # one code: never every mode
     assert (out / "figure.png").stat().st_size > 1000
     assert [p.name for p in (out / "policies").iterdir()] == ["infogail-pomdp-seed0.pt"]  # the spec keeps one
@@ -129,7 +129,7 @@ learner = "infogail-pomdp"
 [rows.settings]
 code_kind = "continuous"
 iterations = 1
-bc_init_iterations = 3
+warm_start_iterations = 3
 num_envs = 6
 hidden_size = 8
 posterior_init_iterations = 2
@@ -229,7 +229,7 @@ def test_mismatched_demonstrations_are_refused_by_train_plot_and_evaluate(demos_
 
 
 CIRCLES = Path(__file__).resolve().parents[1] / "data" / "circles.npz"
-TINY_ADVERSARIAL = ["--iterations", "1", "--num-envs", "4", "--hidden-size", "8", "--bc-init-iterations", "2",
+TINY_ADVERSARIAL = ["--iterations", "1", "--num-envs", "4", "--hidden-size", "8", "--warm-start-iterations", "2",
                     "--posterior-init-iterations", "1", "--critic-batch", "4", "--eval-every", "0", "--no-progress"]
 
 
@@ -314,7 +314,7 @@ def test_cli_smoke_continuous_codes_demos_train_evaluate_plot(tmp_path):
     assert "radius uniform in [3, 7]" in r.stdout
     run = tmp_path / "igp"
     r = pomil("train", "infogail-pomdp", "--demos", demos, "--code-kind", "continuous", "--out", run,
-              "--iterations", 1, "--num-envs", 6, "--hidden-size", 8, "--bc-init-iterations", 3,
+              "--iterations", 1, "--num-envs", 6, "--hidden-size", 8, "--warm-start-iterations", 3,
               "--posterior-init-iterations", 2, "--critic-batch", 6, "--eval-episodes", 2, "--no-progress")
     assert r.returncode == 0, r.stderr
     saved = json.loads((run / "config.json").read_text())
@@ -368,7 +368,7 @@ def test_version_is_the_packages():
 def test_the_warm_start_shows_its_progress(demos_path, tmp_path, capsys):
     """The warm start and the posterior's warm-up each draw a bar with their loss (on stderr, as the run's own)."""
     args = ["train", "infogail-pomdp", "--demos", str(demos_path), "--out", str(tmp_path / "run"), *TINY_ADVERSARIAL]
-    assert main([*args[:-1], "--bc-init-iterations", "4", "--posterior-init-iterations", "3", "--progress"]) == 0
+    assert main([*args[:-1], "--warm-start-iterations", "4", "--posterior-init-iterations", "3", "--progress"]) == 0
     err = capsys.readouterr().err
     assert "warm start: 100%" in err and "4/4" in err and "nll=" in err
     assert "posterior warm start: 100%" in err and "3/3" in err and "loss=" in err

@@ -23,10 +23,10 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     cfg = AdversarialConfig()
     assert (cfg.critic_optimizer, cfg.gradient_penalty, cfg.weight_clip, cfg.lr_critic) == ("adam", 10.0, 0.0, 5e-4)
-    assert (cfg.bc_init_codes, cfg.bc_init_iterations, cfg.bc_weight, cfg.lr, cfg.policy_warmup_iterations) == (
+    assert (cfg.warm_start_codes, cfg.warm_start_iterations, cfg.bc_weight, cfg.lr, cfg.policy_warmup_iterations) == (
         "mixture", 600, 10.0, 5e-5, 5)
-    assert (cfg.bc_init_lr, cfg.bc_init_lr_decay, cfg.bc_init_lr_warmup, cfg.bc_init_log_std_lr_scale,
-            cfg.bc_init_fit_log_std) == (1e-2, True, 0.2, 1.0, False)
+    assert (cfg.warm_start_lr, cfg.warm_start_lr_decay, cfg.warm_start_lr_warmup, cfg.warm_start_log_std_lr_scale,
+            cfg.warm_start_fit_log_std) == (1e-2, True, 0.2, 1.0, False)
     # the warm starts of the presets, whole (steps, peak lr, decay, rise, log std's scale, its fit)
     for name, warm_start in (("deep-warm-start", (600, 1e-2, True, 0.2, 10.0, True)),
                              ("fast-warm-start", (600, 3e-3, True, 0.0, 10.0, True)),
@@ -34,8 +34,8 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
                              ("long-warm-start", (3000, 1e-3, False, 0.0, 1.0, False)),
                              ("paper-text", (300, 1e-3, False, 0.0, 1.0, False))):
         p = from_dict(AdversarialConfig, {"preset": name})
-        assert (p.bc_init_iterations, p.bc_init_lr, p.bc_init_lr_decay, p.bc_init_lr_warmup,
-                p.bc_init_log_std_lr_scale, p.bc_init_fit_log_std) == warm_start, name
+        assert (p.warm_start_iterations, p.warm_start_lr, p.warm_start_lr_decay, p.warm_start_lr_warmup,
+                p.warm_start_log_std_lr_scale, p.warm_start_fit_log_std) == warm_start, name
     assert cfg.mixture_balance == "dataset"
     assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "auto")
     # the circles experiment adds only the run's own fields to the defaults (auto: the circles' default preset)
@@ -51,7 +51,7 @@ def test_paper_text_preset_gives_the_texts_settings_and_flags_override_it():
     assert cfg.preset == "paper-text"
     assert (cfg.critic_optimizer, cfg.weight_clip, cfg.gradient_penalty) == ("rmsprop", 0.01, 0.0)
     assert cfg.lr == cfg.lr_critic == cfg.lr_posterior == 2e-4
-    assert (cfg.update_mode, cfg.bc_init_codes, cfg.bc_weight, cfg.policy_warmup_iterations) == ("window", "random",
+    assert (cfg.update_mode, cfg.warm_start_codes, cfg.bc_weight, cfg.policy_warmup_iterations) == ("window", "random",
                                                                                                  0.0, 0)
     assert (cfg.gamma, cfg.gae_lambda, cfg.hidden_size) == (0.99, 0.95, 128)  # the text's, and the defaults too
     assert from_dict(AdversarialConfig, {"preset": "paper-text", "lr": 1e-3}).lr == 1e-3  # the user's values win
@@ -67,12 +67,12 @@ def test_preset_flag_is_recorded_in_config_json(demos_path, tmp_path):
     out = tmp_path / "run"
     assert main(["train", "infogail", "--preset", "paper-text", "--demos", str(demos_path), "--out", str(out),
                  "--iterations", "1",
-                 "--num-envs", "4", "--hidden-size", "8", "--bc-init-iterations", "1", "--eval-every", "0",
+                 "--num-envs", "4", "--hidden-size", "8", "--warm-start-iterations", "1", "--eval-every", "0",
                  "--critic-steps", "1", "--no-progress"]) == 0
     written = json.loads((out / "config.json").read_text())
     assert written["preset"] == "paper-text"
     assert written["critic_optimizer"] == "rmsprop" and written["weight_clip"] == 0.01
-    assert written["bc_init_iterations"] == 1  # the flag over the preset
+    assert written["warm_start_iterations"] == 1  # the flag over the preset
 
 
 @pytest.fixture(scope="module")
@@ -101,16 +101,17 @@ def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(
     std = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos)})
     assert std.preset == "terminating"
     assert (std.policy_obs_delta, std.policy_prev_action) == (True, False)
-    assert (std.bc_init_iterations, std.bc_init_lr, std.bc_init_lr_decay, std.bc_init_log_std_lr_scale,
-            std.bc_init_fit_log_std) == (600, 3e-3, True, 10.0, True)
+    assert (std.warm_start_iterations, std.warm_start_lr, std.warm_start_lr_decay, std.warm_start_log_std_lr_scale,
+            std.warm_start_fit_log_std) == (600, 3e-3, True, 10.0, True)
     assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True) == \
         from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "fast-warm-start"})
     # the user's values win, also one equal to the field's default; a named preset is taken as named
     mine = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "policy_prev_action": True,
-                                         "bc_init_iterations": 100})
-    assert (mine.preset, mine.policy_obs_delta, mine.policy_prev_action, mine.bc_init_iterations) == (
+                                         "warm_start_iterations": 100})
+    assert (mine.preset, mine.policy_obs_delta, mine.policy_prev_action, mine.warm_start_iterations) == (
         "terminating", True, True, 100)
-    assert from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"}).bc_init_lr == 1e-2
+    default = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"})
+    assert default.warm_start_lr == 1e-2
     # the run's env_kwargs decide, as they decide the environment: paper's demonstrations made to end on a fall
     ended = from_dict(AdversarialConfig, {"demos": paper, "env_kwargs": ["terminate_when_unhealthy=true"]})
     assert ended.preset == "terminating"
@@ -120,21 +121,22 @@ def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(
     bc = from_dict(BCConfig, {"demos": str(standard_hopper_demos)})
     assert (bc.preset, bc.obs_delta, bc.prev_action, bc.iterations) == ("terminating", True, False, 500)
     # built in Python: resolved when it trains, the preset's values for the fields left at their defaults
-    py = resolved(AdversarialConfig(demos=str(standard_hopper_demos), bc_init_iterations=100))
-    assert (py.preset, py.policy_obs_delta, py.bc_init_iterations, py.bc_init_lr) == ("terminating", True, 100, 3e-3)
+    py = resolved(AdversarialConfig(demos=str(standard_hopper_demos), warm_start_iterations=100))
+    assert (py.preset, py.policy_obs_delta, py.warm_start_iterations, py.warm_start_lr) == (
+        "terminating", True, 100, 3e-3)
     assert resolved(std) is std
 
 
 def test_train_on_terminating_demonstrations_records_the_preset_it_ran(standard_hopper_demos, tmp_path):
-    tiny = ["--iterations", "1", "--num-envs", "2", "--hidden-size", "8", "--bc-init-iterations", "1",
-            "--posterior-init-iterations", "1", "--critic-batch", "2", "--bc-init-batch", "2", "--eval-every", "0",
+    tiny = ["--iterations", "1", "--num-envs", "2", "--hidden-size", "8", "--warm-start-iterations", "1",
+            "--posterior-init-iterations", "1", "--critic-batch", "2", "--warm-start-batch", "2", "--eval-every", "0",
             "--critic-steps", "1", "--no-progress"]
     assert main(["train", "infogail-pomdp", "--demos", str(standard_hopper_demos), "--out", str(tmp_path / "igp"),
                  *tiny]) == 0
     written = json.loads((tmp_path / "igp" / "config.json").read_text())
     assert (written["preset"], written["policy_obs_delta"], written["policy_prev_action"]) == ("terminating", True,
                                                                                                False)
-    assert (written["bc_init_iterations"], written["bc_init_lr"]) == (1, 3e-3)  # the flag over the preset
+    assert (written["warm_start_iterations"], written["warm_start_lr"]) == (1, 3e-3)  # the flag over the preset
     assert main(["train", "bc", "--demos", str(standard_hopper_demos), "--out", str(tmp_path / "bc"),
                  "--iterations", "1", "--hidden-size", "8", "--no-progress"]) == 0
     written = json.loads((tmp_path / "bc" / "config.json").read_text())
@@ -174,7 +176,7 @@ def test_modes_success_needs_purity_coverage_and_nmi():
 def test_reproduce_circles_modes_tiny(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "adv.json").write_text(json.dumps({"iterations": 1, "num_envs": 4, "hidden_size": 8,
-                                                   "bc_init_iterations": 2,
+                                                   "warm_start_iterations": 2,
                                                    "posterior_init_iterations": 1, "critic_batch": 4, "eval_every": 0}))
     out = tmp_path / "results"
     assert main(["reproduce", "circles-modes", "--seeds", "1", "--cases", "two,three", "--episodes-per-code", "3",
@@ -193,7 +195,7 @@ def _default_run(demos_path, out, **overrides):
 
 def test_short_default_run_separates_the_two_circles(demos_path, tmp_path):
     """The defaults with a shorter schedule (the smoke version of the slow test below)."""
-    m = _default_run(demos_path, tmp_path / "short", iterations=2, num_envs=64, bc_init_iterations=400,
+    m = _default_run(demos_path, tmp_path / "short", iterations=2, num_envs=64, warm_start_iterations=400,
                      posterior_init_iterations=50)
     assert m["modes_covered"] == 2 and m["min_purity"] >= 0.9, m
 
@@ -214,12 +216,12 @@ def test_long_episodes_cut_the_episode_counts_to_the_step_caps(capsys):
         assert sized_for_episodes(cfg, short) == cfg
     assert capsys.readouterr().err == ""
     long = sized_for_episodes(cfg, 1000)  # Hopper's own episodes
-    assert (long.num_envs, long.bc_init_batch, long.critic_batch) == (65, 16, 16)
-    assert dataclasses.replace(long, num_envs=256, bc_init_batch=64, critic_batch=64) == cfg
-    assert "1000-step episodes: num_envs 256 -> 65, bc_init_batch 64 -> 16, critic_batch 64 -> 16" in \
+    assert (long.num_envs, long.warm_start_batch, long.critic_batch) == (65, 16, 16)
+    assert dataclasses.replace(long, num_envs=256, warm_start_batch=64, critic_batch=64) == cfg
+    assert "1000-step episodes: num_envs 256 -> 65, warm_start_batch 64 -> 16, critic_batch 64 -> 16" in \
         capsys.readouterr().err
     tiny = AdversarialConfig(max_iteration_steps=10, max_batch_steps=10, critic_batch=1)
-    assert (lambda c: (c.num_envs, c.bc_init_batch, c.critic_batch))(sized_for_episodes(tiny, 1000)) == (1, 1, 1)
+    assert (lambda c: (c.num_envs, c.warm_start_batch, c.critic_batch))(sized_for_episodes(tiny, 1000)) == (1, 1, 1)
     assert bc_sized(BCConfig(), 128) == BCConfig()
     assert bc_sized(BCConfig(), 1000).batch_episodes == 16
     assert bc_sized(BCConfig(batch_episodes=8), 1000).batch_episodes == 8  # under the cap: as configured

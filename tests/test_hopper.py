@@ -67,7 +67,7 @@ def test_cli_expert_and_infogail_pomdp_smoke(tmp_path, capsys):
     run = tmp_path / "ip"
     assert main(["train", "infogail-pomdp", "--demos", str(DEMOS), "--out", str(run), "--iterations", "2",
                  "--num-envs", "8",
-                 "--bc-init-iterations", "2", "--posterior-init-iterations", "2", "--eval-every", "1",
+                 "--warm-start-iterations", "2", "--posterior-init-iterations", "2", "--eval-every", "1",
                  "--eval-episodes", "2", "--critic-batch", "8", "--no-progress"]) == 0
     header = (run / "metrics.csv").read_text().splitlines()[0]
     assert "eval/forward/normalised_return" in header and "eval/backward/progress" in header
@@ -82,7 +82,7 @@ def test_reproduce_hopper_smoke_with_override(tmp_path):
     import json
 
     override = tmp_path / "adv.json"
-    override.write_text(json.dumps({"num_envs": 8, "critic_batch": 8, "bc_init_iterations": 2,
+    override.write_text(json.dumps({"num_envs": 8, "critic_batch": 8, "warm_start_iterations": 2,
                                     "posterior_init_iterations": 2,
                                     "eval_every": 1, "eval_episodes": 2}))
     out = tmp_path / "results"
@@ -93,7 +93,7 @@ def test_reproduce_hopper_smoke_with_override(tmp_path):
     ip = results["rows"]["infogail-pomdp"]
     assert ip["config"]["num_envs"] == 8  # the user's file, not only the recipe
     assert ip["runs"][0]["curve"]["env_steps"] == [0.0, 8 * 128.0]  # after the warm start, then after iteration 1
-    assert ip["config"]["bc_init_codes"] == "mixture"  # the Hopper recipe under the user's file
+    assert ip["config"]["warm_start_codes"] == "mixture"  # the Hopper recipe under the user's file
     assert set(ip["runs"][0]["tasks"]) == {"forward", "backward"} and results["setting"] == "paper"
     assert (out / "table.md").exists() and (out / "figure.png").exists()
     assert sorted(p.name for p in (out / "policies").iterdir()) == ["bc-mlp-seed0.pt", "infogail-pomdp-seed0.pt"]

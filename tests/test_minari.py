@@ -87,7 +87,7 @@ def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypa
     assert r.returncode == 0 and "3 episodes of HalfCheetah-v5" in r.stdout, r.stderr
     r = subprocess.run([sys.executable, "-m", "pomil.cli", "train", "infogail-pomdp", "--demos", str(out),
                         "--iterations", "1",
-                        "--num-envs", "2", "--minibatches", "2", "--bc-init-iterations", "1",
+                        "--num-envs", "2", "--minibatches", "2", "--warm-start-iterations", "1",
                         "--posterior-init-iterations", "1",
                         "--out", str(tmp_path / "run"), "--no-progress"],
                        capture_output=True, text=True)

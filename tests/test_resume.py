@@ -26,7 +26,7 @@ from pomil.envs.circles import make_spec
 ROOT = Path(__file__).resolve().parents[1]
 KILL_AT = ROOT / "tests" / "kill_at.py"
 HOPPER = str(ROOT / "data" / "hopper-paper.npz")
-SMALL = ["--num-envs", "8", "--hidden-size", "16", "--bc-init-iterations", "10", "--posterior-init-iterations", "5",
+SMALL = ["--num-envs", "8", "--hidden-size", "16", "--warm-start-iterations", "10", "--posterior-init-iterations", "5",
          "--policy-warmup-iterations", "2", "--eval-every", "0", "--checkpoint-every", "1", "--iterations", "5"]
 
 

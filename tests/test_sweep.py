@@ -18,7 +18,7 @@ def pomil(*args, cwd=None):
 def test_sweep_on_local_ray_reports_failures_and_skips_finished_runs(tmp_path, demos_path):
     config = tmp_path / "sweep.json"
     config.write_text(json.dumps({"learner": "infogail-pomdp", "demos": str(demos_path), "iterations": 2, "num_envs": 8,
-                                  "bc_init_iterations": 2, "posterior_init_iterations": 2, "eval_every": 0,
+                                  "warm_start_iterations": 2, "posterior_init_iterations": 2, "eval_every": 0,
                                   "hidden_size": 16}))
     out = tmp_path / "sweep"
     # cuda:7 passes the config check but cannot run here (nor on a 1-GPU machine): that run fails.
@@ -165,7 +165,7 @@ def test_sweep_of_continuous_codes_reports_the_code_radius_correlation(tmp_path)
     record_circles_demos(make_spec("one"), 16, seed=0, radius_range=(3.0, 7.0)).save(demos)
     config = tmp_path / "sweep.json"
     config.write_text(json.dumps({"learner": "infogail", "demos": str(demos), "iterations": 1, "num_envs": 4,
-                                  "bc_init_iterations": 2, "posterior_init_iterations": 1, "eval_every": 0,
+                                  "warm_start_iterations": 2, "posterior_init_iterations": 1, "eval_every": 0,
                                   "hidden_size": 8, "code_kind": "continuous"}))
     out = tmp_path / "sweep"
     r = pomil("sweep", config, "--no-ray", "--seeds", 1, "--grid", "code_prior=uniform,gaussian", "--out", out,

@@ -175,7 +175,7 @@ def test_cli_any_task_experts_record_merge_train_evaluate(tmp_path):
     m = Demonstrations.load(tmp_path / "m.npz")
     assert m.obs_dim == 1 and m.metadata["observation_mask"] == [0] and m.states.shape[1] == 3
     r = pomil("train", "infogail-pomdp", "--demos", tmp_path / "m.npz", "--iterations", 2, "--num-envs", 4,
-              "--bc-init-iterations", 2, "--posterior-init-iterations", 2, "--eval-every", 1, "--eval-episodes", 2,
+              "--warm-start-iterations", 2, "--posterior-init-iterations", 2, "--eval-every", 1, "--eval-episodes", 2,
               "--out", tmp_path / "run", "--no-progress")
     assert r.returncode == 0, r.stderr
     header = (tmp_path / "run" / "metrics.csv").read_text().splitlines()[0]
@@ -220,7 +220,7 @@ def test_training_overrides_remask_full_observations_and_replace_env_keywords(tm
     # the CLI: a policy on height + two velocities, in 16-step episodes
     r = pomil("train", "infogail-pomdp", "--demos", path, "--observation-mask", "0,5,6",
               "--env-kwargs", "max_episode_steps=16",
-              "--iterations", 1, "--num-envs", 2, "--minibatches", 2, "--bc-init-iterations", 1, "--eval-every", 0,
+              "--iterations", 1, "--num-envs", 2, "--minibatches", 2, "--warm-start-iterations", 1, "--eval-every", 0,
               "--posterior-init-iterations", 1, "--out", tmp_path / "r",
               "--no-progress")
     assert r.returncode == 0, r.stderr
@@ -246,7 +246,7 @@ def test_reproduce_tasks_and_a_sequential_sweep_on_any_task(tmp_path):
     r = pomil("demos", "merge", tmp_path / "up.npz", tmp_path / "down.npz", "--out", tmp_path / "m.npz")
     assert r.returncode == 0, r.stderr
     tiny = {"num_envs": 2, "minibatches": 2,
-            "bc_init_iterations": 1, "posterior_init_iterations": 1, "hidden_size": 8, "eval_every": 1,
+            "warm_start_iterations": 1, "posterior_init_iterations": 1, "hidden_size": 8, "eval_every": 1,
             "eval_episodes": 1}
     (tmp_path / "adv.json").write_text(json.dumps(tiny))
     r = pomil("reproduce", "tasks", "--demos", tmp_path / "m.npz", "--out", tmp_path / "res",

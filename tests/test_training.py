@@ -38,7 +38,7 @@ def _bc(demos_path, out, **kw):
 def _adv(demos_path, out, **kw):
     return AdversarialConfig(**{**dict(demos=str(demos_path), out=str(out), iterations=4, num_envs=8, hidden_size=16,
                                        critic_steps=1, critic_batch=8, ppo_epochs=1, minibatches=2, eval_every=2,
-                                       eval_episodes=4, progress=False, log_every=1, bc_init_iterations=0,
+                                       eval_episodes=4, progress=False, log_every=1, warm_start_iterations=0,
                                        checkpoint_every=2), **kw})
 
 
@@ -113,7 +113,7 @@ def test_the_issues_divergent_learning_rates_end_in_one_line_with_exit_3(demos_p
     code = main(["train", "infogail-pomdp", "--demos", str(demos_path), "--out", str(tmp_path / "r"), "--lr", "1e4",
                  "--lr-critic", "1e4", "--lr-value", "1e4", "--iterations", "6", "--num-envs", "8",
                  "--hidden-size", "16",
-                 "--critic-steps", "1", "--bc-init-iterations", "0", "--eval-every", "0", "--checkpoint-every", "1",
+                 "--critic-steps", "1", "--warm-start-iterations", "0", "--eval-every", "0", "--checkpoint-every", "1",
                  "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 3 and len(err) == 1 and "(the run diverged)" in err[0], err
@@ -124,10 +124,10 @@ def test_the_issues_divergent_learning_rates_end_in_one_line_with_exit_3(demos_p
 def test_warm_start_is_guarded(demos_path, tmp_path, monkeypatch):
     _nan_on_call(monkeypatch, warm_start, "bc_step", 3, "bc/nll")
     with pytest.raises(DivergenceError) as err:
-        train_adversarial(_adv(demos_path, tmp_path / "w", bc_init_iterations=5))
+        train_adversarial(_adv(demos_path, tmp_path / "w", warm_start_iterations=5))
     assert str(err.value) == ("warm-start step 3: warm-start loss (negative log-likelihood) is nan (the run diverged); "
-                              "try a lower --bc-init-lr (now 0.01); no checkpoint of this run was written: "
-                              "start it again with a lower --bc-init-lr")
+                              "try a lower --warm-start-lr (now 0.01); no checkpoint of this run was written: "
+                              "start it again with a lower --warm-start-lr")
     assert not (tmp_path / "w" / "checkpoint.pt").exists()
 
 

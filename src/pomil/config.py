@@ -281,6 +281,7 @@ def resolved(config: T) -> T:
 def _renamed(cls: type, values: dict[str, Any], source: str, note: bool = True) -> dict[str, Any]:
     """``values`` with the class's old key names (its ``RENAMED`` table, old -> new) under their new
     names, so that saved config.json files and checkpoints keep loading; a note asks to rename them."""
+    values = _folded(cls, values, source, note)
     renamed: dict[str, str] = getattr(cls, "RENAMED", {})
     old = [k for k in values if k in renamed]
     if not old:
@@ -294,6 +295,22 @@ def _renamed(cls: type, values: dict[str, Any], source: str, note: bool = True) 
         if note:
             print(f"pomil: note: {source}: config key '{key}' is now called '{renamed[key]}' (the old name is "
                   "deprecated and still read)", file=sys.stderr)
+    return values
+
+
+def _folded(cls: type, values: dict[str, Any], source: str, note: bool) -> dict[str, Any]:
+    """``values`` with the class's retired keys (its ``FOLDED`` table: old key -> (its type, a function of its
+    value and the other values giving the new keys' values)) replaced, so that saved config files and
+    checkpoints keep loading; a note names the replacement."""
+    folded: dict[str, tuple[type, Any]] = getattr(cls, "FOLDED", {})
+    for key in [k for k in values if k in folded]:
+        values = dict(values)
+        tp, fold = folded[key]
+        new = fold(_coerce(values.pop(key), tp, key), values)
+        values.update(new)
+        if note:
+            now = ", ".join(f"{k} {v!r}" for k, v in new.items()) or "the default"
+            print(f"pomil: note: {source}: config key '{key}' is retired; read as {now}", file=sys.stderr)
     return values
 
 

@@ -171,7 +171,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 # directory may be moved), except the learning rates, which may be lowered to continue
 # a run that diverged.
 RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device", "out",
-                               "lr", "lr_value", "lr_critic", "lr_posterior", "bc_init_lr"})
+                               "lr", "lr_value", "lr_critic", "lr_posterior", "warm_start_lr"})
 
 
 def check_resume_config(ckpt: dict[str, Any], config: dict[str, Any], path: str | Path,

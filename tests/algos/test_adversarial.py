@@ -1,9 +1,13 @@
+import dataclasses
+
 import pytest
 import torch
 
 from pomil.algos.adversarial import AdversarialConfig, build_modules, critic_loss, posterior_loss, train_adversarial
 from pomil.cli import main
+from pomil.config import from_dict, to_dict
 from pomil.envs import executed_actions_fn, make_vec_env
+from pomil.errors import ConfigError
 from pomil.nn import heads
 from pomil.rl.collect import collect
 from pomil.rl.storage import Rollout
@@ -78,7 +82,7 @@ def test_posterior_learns_codes_from_code_dependent_sequences():
 def _cfg(demos_path, out, **kw):
     base = dict(demos=str(demos_path), out=str(out), iterations=3, num_envs=8, hidden_size=16, critic_steps=1,
                 critic_batch=8, ppo_epochs=1, minibatches=2, eval_every=2, eval_episodes=4, progress=False, log_every=1,
-                bc_init_iterations=0)
+                warm_start_iterations=0)
     base.update(kw)
     return AdversarialConfig(**base)
 
@@ -90,7 +94,7 @@ def test_every_learner_runs_a_few_iterations_through_the_cli(learner, mode, demo
     code = main(["train", learner, "--demos", str(demos_path), "--out", str(out), "--iterations", "3",
                  "--num-envs", "8",
                  "--hidden-size", "16", "--critic-steps", "1", "--ppo-epochs", "1", "--update-mode", mode,
-                 "--window-length", "5", "--eval-every", "2", "--eval-episodes", "4", "--bc-init-iterations", "2",
+                 "--window-length", "5", "--eval-every", "2", "--eval-episodes", "4", "--warm-start-iterations", "2",
                  "--no-progress"])
     assert code == 0
     ckpt = load_checkpoint(out / "checkpoint.pt")
@@ -135,7 +139,7 @@ def test_bc_warm_start_puts_the_policy_on_the_circles(demos_path, tmp_path):
     for warm in (0, 250):
         ckpt = train_adversarial(_cfg(demos_path, tmp_path / str(warm), learner="infogail", iterations=1,
                                       hidden_size=64,
-                                      bc_init_iterations=warm, num_envs=32, eval_every=0))
+                                      warm_start_iterations=warm, num_envs=32, eval_every=0))
         metrics, _ = evaluate_circles(TrainedPolicy.load(ckpt), 20, seed=0)
         none[warm] = metrics["overall_none_share"]
     assert none[250] <= 0.1 < none[0], none
@@ -153,8 +157,8 @@ def test_mixture_warm_start_ties_codes_to_modes_and_trains_the_posterior(demos_p
     nmi = {}
     for codes in ("random", "mixture"):
         ckpt = train_adversarial(_cfg(demos_path, tmp_path / codes, iterations=1, hidden_size=32,
-                                      bc_init_iterations=150,
-                                      posterior_init_iterations=50, bc_init_codes=codes, eval_every=0))
+                                      warm_start_iterations=150,
+                                      posterior_init_iterations=50, warm_start_codes=codes, eval_every=0))
         nmi[codes] = evaluate_circles(TrainedPolicy.load(ckpt), 100, seed=0)[0]["nmi"]
         with open(tmp_path / codes / "metrics.csv", newline="") as f:
             warm, first = list(csv.DictReader(f))[:2]
@@ -168,17 +172,17 @@ def test_mixture_warm_start_ties_codes_to_modes_and_trains_the_posterior(demos_p
 
 
 def test_policy_warmup_leaves_the_policy_alone_while_value_critic_and_posterior_learn(demos_path, tmp_path):
-    cfg = _cfg(demos_path, tmp_path / "warm", iterations=2, policy_warmup_iterations=2, bc_init_iterations=5,
+    cfg = _cfg(demos_path, tmp_path / "warm", iterations=2, policy_warmup_iterations=2, warm_start_iterations=5,
                eval_every=0)
     warm = load_checkpoint(train_adversarial(cfg))
     start = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "start", iterations=1,
                                                    policy_warmup_iterations=2,
-                                                   bc_init_iterations=5, eval_every=0)))
+                                                   warm_start_iterations=5, eval_every=0)))
     init = {k: v.clone() for k, v in start["nets"]["value"].items()}
     for k, v in warm["policy"].items():  # same seed, same warm start: the policy is exactly the warm-started one
         torch.testing.assert_close(v, start["policy"][k], rtol=0, atol=0)
     assert any(not torch.equal(v, init[k]) for k, v in warm["nets"]["value"].items())
-    moved = train_adversarial(_cfg(demos_path, tmp_path / "moved", iterations=2, bc_init_iterations=5, eval_every=0,
+    moved = train_adversarial(_cfg(demos_path, tmp_path / "moved", iterations=2, warm_start_iterations=5, eval_every=0,
                                    policy_warmup_iterations=0))
     assert any(not torch.equal(v, warm["policy"][k]) for k, v in load_checkpoint(moved)["policy"].items())
 
@@ -186,7 +190,7 @@ def test_policy_warmup_leaves_the_policy_alone_while_value_critic_and_posterior_
 def test_bc_weight_adds_the_demonstrations_likelihood_to_the_policy_loss(demos_path, tmp_path):
     import csv
 
-    train_adversarial(_cfg(demos_path, tmp_path / "bc", iterations=2, bc_weight=1.0, bc_init_codes="mixture",
+    train_adversarial(_cfg(demos_path, tmp_path / "bc", iterations=2, bc_weight=1.0, warm_start_codes="mixture",
                            eval_every=0))
     with open(tmp_path / "bc" / "metrics.csv", newline="") as f:
         rows = list(csv.DictReader(f))
@@ -202,8 +206,14 @@ def test_gan_critic_is_never_weight_clipped(demos_path, tmp_path):
     assert max(p.abs().max().item() for p in load_checkpoint(ckpt)["nets"]["critic"].values()) <= 0.01
 
 
-def test_shared_value_encoder_is_one_module_trained_once(demos_path, tmp_path):
-    cfg = _cfg(demos_path, tmp_path / "s", learner="infogail-pomdp", shared_value_encoder=True)
+def test_value_on_policy_is_one_module_trained_once_and_the_retired_flag_reads_as_it(demos_path, tmp_path, capsys):
+    cfg = _cfg(demos_path, tmp_path / "s", learner="infogail-pomdp", belief="value-on-policy")
+    old = from_dict(AdversarialConfig, {**to_dict(cfg), "belief": "separate", "shared_value_encoder": "true"}, "old")
+    assert old == dataclasses.replace(cfg, preset="default")
+    assert "config key 'shared_value_encoder' is retired; read as belief 'value-on-policy'" in capsys.readouterr().err
+    assert from_dict(AdversarialConfig, {"shared_value_encoder": False}, "old").belief == "separate"
+    with pytest.raises(ConfigError, match="true with belief 'policy' has no equivalent"):
+        from_dict(AdversarialConfig, {"shared_value_encoder": True, "belief": "policy"}, "old")
     m, _ = build_modules(cfg, 2, 2, 2, "cpu")
     assert m.value.encoder is m.policy.encoder
     ckpt = load_checkpoint(train_adversarial(cfg))
@@ -246,7 +256,7 @@ def test_a_policy_only_belief_gives_feed_forward_value_critic_and_posterior(demo
 def test_zero_iterations_is_the_warm_start_alone_evaluated_and_saved(demos_path, tmp_path):
     import csv
 
-    cfg = _cfg(demos_path, tmp_path / "w", learner="infogail-pomdp", iterations=0, bc_init_iterations=20,
+    cfg = _cfg(demos_path, tmp_path / "w", learner="infogail-pomdp", iterations=0, warm_start_iterations=20,
                posterior_init_iterations=5)
     ckpt = load_checkpoint(train_adversarial(cfg))
     assert ckpt["iteration"] == 0 and ckpt["env_steps"] == 0
@@ -258,13 +268,14 @@ def test_zero_iterations_is_the_warm_start_alone_evaluated_and_saved(demos_path,
     # first iteration leaves the policy as the warm start left it (policy_warmup_iterations)
     assert load_checkpoint(train_adversarial(cfg, resume=True))["iteration"] == 0
     longer = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "w", learner="infogail-pomdp", iterations=1,
-                                                    bc_init_iterations=20, posterior_init_iterations=5), resume=True))
+                                                    warm_start_iterations=20, posterior_init_iterations=5),
+                                               resume=True))
     assert longer["iteration"] == 1
     assert all(torch.equal(longer["policy"][k], v) for k, v in ckpt["policy"].items())
     with open(tmp_path / "w" / "metrics.csv", newline="") as f:
         assert [r["iteration"] for r in csv.DictReader(f)] == ["0", "1"]
     straight = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "s", learner="infogail-pomdp",
-                                                      iterations=1, bc_init_iterations=20,
+                                                      iterations=1, warm_start_iterations=20,
                                                       posterior_init_iterations=5)))
     for name in ("policy", "value", "critic", "posterior"):  # the same as one run straight through
         assert all(torch.equal(straight["nets"][name][k], v) for k, v in longer["nets"][name].items()), name

@@ -214,7 +214,7 @@ def test_the_whole_set_assignment_refreshes_every_10_steps_or_once_per_pass():
     def episodes(n):
         return PaddedEpisodes(torch.zeros(3, n, 2), torch.zeros(3, n, 2), torch.ones(3, n, dtype=torch.bool))
 
-    cfg = AdversarialConfig()  # bc_init_batch 64
+    cfg = AdversarialConfig()  # warm_start_batch 64
     assert mixture_assignment(cfg, episodes(600), torch.zeros(3, 600, 2), True).refresh == 10
     assert mixture_assignment(cfg, episodes(2000), torch.zeros(3, 2000, 2), True).refresh == 32  # ceil(2000 / 64)
     assert mixture_assignment(cfg, episodes(600), torch.zeros(3, 600, 2),
@@ -284,8 +284,8 @@ def test_fit_log_std_weights_each_code_by_its_responsibility():
 
 
 def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
-    """Adam's log-std group runs at bc_init_log_std_lr_scale x bc_init_lr; the rate falls linearly
-    to 0 over the steps (the fast-warm-start preset), after a linear rise over bc_init_lr_warmup of them
+    """Adam's log-std group runs at warm_start_log_std_lr_scale x warm_start_lr; the rate falls linearly
+    to 0 over the steps (the fast-warm-start preset), after a linear rise over warm_start_lr_warmup of them
     (deep-warm-start and the defaults, whose log std runs at 1x and is not fitted); paper-text: 1e-3, 1x, no
     decay, no fit."""
     from pomil.algos.adversarial import AdversarialConfig
@@ -295,9 +295,9 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
 
     policy = GaussianPolicy(PolicyArch(2, 2, "gru", 8, num_codes=2))
     cfg = from_dict(AdversarialConfig, {"preset": "fast-warm-start"})
-    assert (cfg.bc_init_iterations, cfg.bc_init_lr, cfg.bc_init_log_std_lr_scale) == (600, 3e-3, 10.0)
-    assert (cfg.bc_init_lr_decay, cfg.bc_init_fit_log_std) == (True, True)
-    opt, decay = warm_start_optimizer(policy, dataclasses.replace(cfg, bc_init_iterations=4))
+    assert (cfg.warm_start_iterations, cfg.warm_start_lr, cfg.warm_start_log_std_lr_scale) == (600, 3e-3, 10.0)
+    assert (cfg.warm_start_lr_decay, cfg.warm_start_fit_log_std) == (True, True)
+    opt, decay = warm_start_optimizer(policy, dataclasses.replace(cfg, warm_start_iterations=4))
     assert [g["lr"] for g in opt.param_groups] == [3e-3, pytest.approx(3e-2)]
     assert opt.param_groups[1]["params"] == [policy.log_std]
     assert sum(p.numel() for g in opt.param_groups for p in g["params"]) == sum(p.numel() for p in policy.parameters())
@@ -307,17 +307,17 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
         decay.step()
         lrs.append(opt.param_groups[0]["lr"])
     assert lrs == pytest.approx([2.25e-3, 1.5e-3, 0.75e-3, 0.0])
-    opt, decay = warm_start_optimizer(policy, dataclasses.replace(cfg, bc_init_lr_decay=False))
+    opt, decay = warm_start_optimizer(policy, dataclasses.replace(cfg, warm_start_lr_decay=False))
     opt.step()
     decay.step()
     assert opt.param_groups[0]["lr"] == 3e-3
     for plain in (from_dict(AdversarialConfig, {"preset": "paper-text"}),
                   from_dict(AdversarialConfig, {"preset": "long-warm-start"})):
-        assert (plain.bc_init_lr, plain.bc_init_lr_decay, plain.bc_init_log_std_lr_scale,
-                plain.bc_init_fit_log_std) == (1e-3, False, 1.0, False)
+        assert (plain.warm_start_lr, plain.warm_start_lr_decay, plain.warm_start_log_std_lr_scale,
+                plain.warm_start_fit_log_std) == (1e-3, False, 1.0, False)
     # deep-warm-start: 10 steps, the first 2 rising to the peak, then the decay to 0 over the other 8
     deep = from_dict(AdversarialConfig, {"preset": "deep-warm-start"})
-    opt, schedule = warm_start_optimizer(policy, dataclasses.replace(deep, bc_init_iterations=10))
+    opt, schedule = warm_start_optimizer(policy, dataclasses.replace(deep, warm_start_iterations=10))
     lrs = []
     for _ in range(10):
         lrs.append(opt.param_groups[0]["lr"])
@@ -326,7 +326,7 @@ def test_the_warm_start_steps_its_log_std_faster_and_decays_to_zero():
         schedule.step()
     assert lrs == pytest.approx([5e-3, 1e-2, 1e-2, 8.75e-3, 7.5e-3, 6.25e-3, 5e-3, 3.75e-3, 2.5e-3, 1.25e-3])
     # the defaults: the same schedule, the log std's group at the network's rate
-    opt, schedule = warm_start_optimizer(policy, dataclasses.replace(AdversarialConfig(), bc_init_iterations=10))
+    opt, schedule = warm_start_optimizer(policy, dataclasses.replace(AdversarialConfig(), warm_start_iterations=10))
     default_lrs = []
     for _ in range(10):
         default_lrs.append(opt.param_groups[0]["lr"])

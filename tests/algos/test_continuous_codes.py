@@ -33,7 +33,7 @@ def radius_demos_path(radius_demos, tmp_path_factory):
 def _cfg(demos_path, out, **kw):
     base = dict(demos=str(demos_path), out=str(out), iterations=2, num_envs=8, hidden_size=16, critic_steps=1,
                 critic_batch=8, ppo_epochs=1, minibatches=2, eval_every=2, eval_episodes=2, progress=False,
-                log_every=1, bc_init_iterations=20, posterior_init_iterations=5, bc_init_batch=16,
+                log_every=1, warm_start_iterations=20, posterior_init_iterations=5, warm_start_batch=16,
                 code_kind="continuous", code_dim=2)
     base.update(kw)
     return AdversarialConfig(**base)
@@ -129,8 +129,8 @@ def test_continuous_warm_start_fits_the_episode_codes_and_the_run_resumes_them(r
 
 
 def test_infogails_random_code_warm_start_works_with_continuous_codes_too(radius_demos_path, tmp_path):
-    ckpt = train_adversarial(_cfg(radius_demos_path, tmp_path / "r", learner="infogail", bc_init_codes="random",
-                                  code_prior="gaussian", code_dim=1, bc_init_fit_log_std=True))
+    ckpt = train_adversarial(_cfg(radius_demos_path, tmp_path / "r", learner="infogail", warm_start_codes="random",
+                                  code_prior="gaussian", code_dim=1, warm_start_fit_log_std=True))
     nets = load_checkpoint(ckpt)["nets"]
     assert "episode_codes" not in nets
     assert TrainedPolicy.load(ckpt).code_prior == "gaussian"

@@ -244,7 +244,7 @@ def test_the_flag_refuses_another_word_and_writes_nothing(tmp_path, demos_path, 
 
 
 # ------------------------------------------------------------------------ runs
-TINY = ["--num-envs", "4", "--hidden-size", "8", "--bc-init-iterations", "2", "--posterior-init-iterations", "2",
+TINY = ["--num-envs", "4", "--hidden-size", "8", "--warm-start-iterations", "2", "--posterior-init-iterations", "2",
         "--eval-every", "0", "--critic-steps", "1", "--ppo-epochs", "1", "--no-progress", "--num-codes-max", "3",
         "--num-codes-search-iterations", "5"]
 
@@ -302,20 +302,20 @@ def test_the_search_fits_on_the_fast_schedule_whatever_the_runs_warm_start(demos
     monkeypatch.setattr(adv, "clone_demonstrations", lambda policy, train, prev, k, mixture, cfg, *a: seen.append(
         (k, mixture, cfg)) or {})
     cfg = from_dict(AdversarialConfig, {"demos": str(demos_path), "num_codes": "auto", "num_codes_max": 3,
-                                        "num_codes_search_iterations": 7, "hidden_size": 8, "bc_init_lr": 1e-4})
+                                        "num_codes_search_iterations": 7, "hidden_size": 8, "warm_start_lr": 1e-4})
     demos = Demonstrations.load(demos_path).padded("cpu")
     adv.auto_num_codes(cfg, demos, lambda a: a)
     assert [(k, mixture) for k, mixture, _ in seen] == [(1, True), (2, True), (3, True)]
     for _, _, fit in seen:
-        assert fit.bc_init_iterations == 7
-        assert {k: getattr(fit, k) for k in adv.FAST_WARM_START if k != "bc_init_iterations"} == {
-            "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_lr_warmup": 0.0, "bc_init_log_std_lr_scale": 10.0,
-            "bc_init_fit_log_std": True}  # the schedule it was calibrated on, whatever the defaults' warm start
-    assert cfg.bc_init_lr == 1e-4 and cfg.bc_init_iterations == 600  # the run's own warm start is left as it was
+        assert fit.warm_start_iterations == 7
+        assert {k: getattr(fit, k) for k in adv.FAST_WARM_START if k != "warm_start_iterations"} == {
+            "warm_start_lr": 3e-3, "warm_start_lr_decay": True, "warm_start_lr_warmup": 0.0,
+            "warm_start_log_std_lr_scale": 10.0, "warm_start_fit_log_std": True}  # the schedule it was calibrated on
+    assert cfg.warm_start_lr == 1e-4 and cfg.warm_start_iterations == 600  # the run's own warm start is left as it was
 
 
 def test_gail_ignores_auto_and_explicit_runs_record_nothing(demos_path, tmp_path, capsys):
-    cfg = dict(demos=str(demos_path), iterations=0, num_envs=4, hidden_size=8, bc_init_iterations=1, eval_every=0,
+    cfg = dict(demos=str(demos_path), iterations=0, num_envs=4, hidden_size=8, warm_start_iterations=1, eval_every=0,
                progress=False, num_codes_search_iterations=1)
     ckpt = load_checkpoint(train_adversarial(AdversarialConfig(learner="gail", out=str(tmp_path / "g"), num_codes=0,
                                                                **cfg)))

@@ -185,7 +185,7 @@ def test_a_bfloat16_warm_start_fits_the_demonstrations_as_the_float32_one(demos)
     Also inside an enclosing autocast, which would otherwise keep the cache for its own length."""
     nll = {}
     for precision, enclosing in (("float32", False), ("bfloat16", False), ("bfloat16", True)):
-        run, _ = make_run(demos, precision=precision, **{**FAST_WARM_START, "bc_init_iterations": 20})
+        run, _ = make_run(demos, precision=precision, **{**FAST_WARM_START, "warm_start_iterations": 20})
         with torch.autocast("cpu", enabled=False) if enclosing else contextlib.nullcontext():
             stats = clone_demonstrations(run.m.policy, run.expert, run.expert_prev, 2, True, run.cfg,
                                          torch.Generator().manual_seed(0))

@@ -210,7 +210,7 @@ def test_infogail_pomdp_trains_one_iteration_on_warp_physics(tmp_path):
 
     demos = Path(__file__).resolve().parents[2] / "data" / "hopper-paper.npz"
     values = {"learner": "infogail-pomdp", "demos": str(demos), "out": str(tmp_path), "iterations": 1, "num_envs": 4,
-              "bc_init_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
+              "warm_start_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
               "progress": False, "sim": "warp"}
     ckpt = train_adversarial(from_dict(AdversarialConfig, values, "test"))
     assert load_checkpoint(ckpt)["env_steps"] == 4 * 128  # paper setting: 128 steps per episode

@@ -53,6 +53,7 @@ from pomil.algos.warm_start import (
     LONG_WARM_START,
     EpisodeCodes,
     MixtureAssignment,
+    WarmStartOptions,
     clone_demonstrations,
     clone_with_continuous_codes,
     demo_batch,
@@ -76,7 +77,7 @@ from pomil.nn.heads import BeliefHead
 from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
 from pomil.rl.collect import collect
 from pomil.rl.gae import gae
-from pomil.rl.ppo import masked_mean, normalize, ppo_loss
+from pomil.rl.ppo import PPOOptions, masked_mean, normalize, ppo_loss
 from pomil.rl.storage import Rollout, window_index
 from pomil.training import (
     DivergenceGuard,
@@ -88,70 +89,26 @@ from pomil.training import (
     progress_bar,
 )
 
-# The defaults are the recipe measured best (README "Defaults"; the paper's text is the
-# ``paper-text`` preset).  Each choice was found by measurement:
-# - a gradient-penalty critic (Adam, lr 5e-4): with the text's weight clipping (+-0.01,
-#   RMSProp) the critic's scores stay ~1e-3 apart and carry too little signal to keep the
-#   policy on the circles;
-# - the mixture warm start (each code clones its own balanced cluster of the unlabelled
-#   demonstrations): with random codes the policy starts out ignoring its code, and on
-#   four or more circles the MI reward alone then covers only some modes (circles
-#   ``four``: 2 of 4 modes, min purity 0.24 with random codes; 4 of 4, 0.98 with mixture);
-# - the warm start's codes balanced over all demonstration episodes, not per batch
-#   (``mixture_balance``): per-batch balancing hands ~10% of every batch to the wrong
-#   codes (six circles, seed 2, warm start alone: min purity 0.63 per batch, 1.00 whole set);
-# - a 600-step warm start whose rate rises linearly to 1e-2 over the first 20% of the steps,
-#   then decays to 0: it fits the demonstrations deeper (paper's Hopper NLL -8.3 to -8.7
-#   per step) than the former default of 3000 steps at a constant 1e-3 (-7.5) in a fifth
-#   of the steps.  Over 5 seeds on the paper's Hopper 5/5 (forward 0.97, backward 1.00;
-#   the 3000 steps: 0.98 / 1.00, 5/5, 701 s per seed against 392); two to six circles
-#   10/10 each (docs/method.md, "The warm start's schedule").  Without
-#   the rise (lr 1e-2 from the first step) two of five held-out circles shared a code; the
-#   log std at 10x the rate and fitted at the end (preset deep-warm-start) lost one of five
-#   Hopper seeds' backward gait (0.77); at lr 3e-3 without a rise (preset fast-warm-start)
-#   the forward gait was worse (0.86, 4/5).  The log std learns at the network's rate, as
-#   in the former default: Adam moves it about 1e-2 per step at the peak;
-# - 5 iterations in which only critic, posterior and value learn, a behaviour-cloning term
-#   (weight 10) in the policy loss and a policy lr of 5e-5: without them the adversarial
-#   updates took the warm-started Hopper gaits apart within 5-10 iterations;
-# - 256 episodes per iteration, 30 iterations: the batched simulator and the networks
-#   run ~2x faster per env step than with 64.
+# The defaults are the recipe measured best, each choice with its measurement in docs/method.md ("Defaults and
+# presets"); the paper's text is the ``paper-text`` preset.
+
+
+def _value_on_policy(shared: bool, values: dict[str, Any]) -> dict[str, Any]:
+    """An old config's ``shared_value_encoder`` as a ``belief`` (shared beliefs had the value on the policy's
+    encoder anyway)."""
+    belief = values.get("belief", "separate")
+    if not shared or belief == "shared":
+        return {}
+    if belief != "separate":
+        raise ConfigError(f"config key 'shared_value_encoder': retired; true with belief {belief!r} has no "
+                          "equivalent (belief value-on-policy is the value head on the policy's encoder)")
+    return {"belief": "value-on-policy"}
 
 
 @dataclass(frozen=True)
-class AdversarialConfig(RunConfig):
-    learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp",
-                                                                    "which learner (set by the subcommand)")
-    out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
-    preset: Literal["auto", "default", "paper-text", "long-warm-start", "fast-warm-start", "deep-warm-start",
-                    "terminating"] = option(
-        "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
-                "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
-                "otherwise), default (pomil's measured recipe), paper-text (the paper's text), long-warm-start (the "
-                "former default warm start: 3000 steps at lr 1e-3), fast-warm-start (600 steps at lr 3e-3, "
-                "the log std at 10x and fitted; worse on the paper's Hopper), deep-warm-start (the default's "
-                "schedule, the log std at 10x and fitted: 4/5 seeds on the paper's Hopper) or terminating (the "
-                "policy sees (z_t, dz_t) without a_{t-1}, and the fast warm start); config.json records the one that "
-                "ran; see PRESETS")
-    iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
-                             within="[0, inf)")
-    num_envs: int = option(256, "episodes collected per iteration (at most max_iteration_steps of them)",
-                           within="[1, inf)")
-    max_iteration_steps: int = option(65536, "long episodes: at most this many env steps per iteration, counted at the "
-                                             "demonstrations' longest episode: fewer than num_envs episodes (1000-step "
-                                             "Hopper: 65)", within="[1, inf)")
-    max_batch_steps: int = option(16384, "long episodes: at most this many steps in a batch of whole episodes "
-                                         "(warm-start, BC-term and critic batches): fewer than bc_init_batch and "
-                                         "critic_batch episodes (1000-step Hopper: 16)", within="[1, inf)")
-    sim: Literal["cpu", "warp"] = option("cpu", SIM_HELP)
-    precision: Literal["float32", "bfloat16"] = option(
-        "float32", "the updates' and the warm start's network passes (critic, posterior, policy and value; not the "
-                   "rollout's): float32, or bfloat16 through torch.autocast, with outputs, losses and weights in "
-                   "float32; measured on a CPU with bfloat16 instructions (AVX512-BF16): the training loop 7-9% faster "
-                   "on two torch threads, 1.34x on one; slower on a CPU without them; other numerics (docs/speed.md)")
-    rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
-                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on",
-                                     within="[0, inf)")
+class CodeOptions:
+    """The latent codes: how many (or chosen how), discrete or continuous."""
+
     num_codes: int = option(-1,
                             "latent codes K >= 2; -1 = number of modes the demonstrations' metadata or labels name, "
                             "at least 2; auto = chosen by the mixture warm start's held-out classification likelihood "
@@ -178,6 +135,11 @@ class AdversarialConfig(RunConfig):
     code_prior: Literal["uniform", "gaussian"] = option(
         "uniform", "with code_kind continuous: the prior codes are drawn from, uniform on [-1, 1]^d or a standard "
                    "gaussian")
+
+@dataclass(frozen=True)
+class NetworkOptions:
+    """The networks: width, belief encoders and what each sees, the policy's output."""
+
     hidden_size: int = option(128, "dense width and recurrent cells (attention: model width) of every network",
                               within="[1, inf)")
     belief_encoder: Literal["gru", "lstm", "attention"] = option(
@@ -186,19 +148,21 @@ class AdversarialConfig(RunConfig):
                "ignored by gail and infogail (feed-forward)")
     attention_context: int = option(32, "with belief_encoder attention: steps it attends to, the current one included",
                                     within="[1, inf)")
+    belief: Literal["separate", "value-on-policy", "shared", "policy"] = option(
+        "separate", "belief encoders: separate = policy, value, critic and posterior each have their own (the paper); "
+                    "value-on-policy = the value head on the policy's encoder, critic and posterior their own "
+                    "(measured: docs/method.md); shared = one encoder for all four, trained by every loss; policy = "
+                    "the policy's only, value, critic and posterior feed-forward (the last two are ablations)")
     policy_obs_delta: bool = option(False, "the policy (not critic, value or posterior): " + OBS_DELTA_HELP)
     policy_prev_action: bool = option(True, "the policy's encoder: " + PREV_ACTION_HELP)
-    lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
-    lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
-    shared_value_encoder: bool = option(False,
-                                        "value head on the policy's encoder instead of its own (measured: see "
-                                        "docs/method.md)")
-    belief: Literal["separate", "shared", "policy"] = option(
-        "separate", "belief encoders: separate = policy, value, critic and posterior each have their own (the paper); "
-                    "shared = one encoder for all four, trained by every loss; policy = the policy's only, value, "
-                    "critic and posterior feed-forward (the last two are ablations)")
+    log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
+    tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
+
+@dataclass(frozen=True)
+class CriticOptions:
+    """The critic f (Wasserstein or GAN) and the reward's critic term."""
+
     lr_critic: float = option(5e-4, "critic learning rate", within="(0, inf)")
-    lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     critic_optimizer: Literal["rmsprop", "adam"] = option("adam", "adam (the paper's code) or rmsprop (its text)")
     critic_steps: int = option(3, "critic updates per iteration", within="[1, inf)")
     critic_batch: int = option(64, "expert and policy episodes per critic update (at most max_batch_steps)",
@@ -211,62 +175,68 @@ class AdversarialConfig(RunConfig):
                                      "paper's text: 0.01; never for GAIL's GAN critic)", within="[0, inf)")
     gradient_penalty: float = option(10.0, "WGAN-GP weight (0: off); use with weight_clip 0 and adam",
                                      within="[0, inf)")
+    normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
+
+@dataclass(frozen=True)
+class PosteriorOptions:
+    """The posterior P(c | b) and the reward's mutual-information term."""
+
+    lr_posterior: float = option(2e-4, "posterior learning rate (Adam)", within="(0, inf)")
     posterior_steps: int = option(1, "posterior updates per iteration", within="[1, inf)")
     mi_weight: float = option(5.0, "lambda1: weight of log P(c | b) in the reward (the paper's code: 10)",
                               within="[0, inf)")
-    ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
-    vf_coef: float = option(0.5, "weight of the value loss in the PPO loss", within="[0, inf)")
-    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update",
-                                  within="(0, inf)")
-    normalize_reward: bool = option(True, "standardise the critic term of the reward per batch")
+
+
+@dataclass(frozen=True)
+class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOptions, WarmStartOptions, CodeOptions,
+                        RunConfig):  # fields in the reverse order: the run's, codes, warm start, ...
+    """GAIL, InfoGAIL and InfoGAIL-POMDP: the run and its loop here, each part's options in its group."""
+
+    ppo_epochs: int = option(2, "PPO epochs per iteration", within="[1, inf)")
+    minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
+    learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp",
+                                                                    "which learner (set by the subcommand)")
+    out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
+    preset: Literal["auto", "default", "paper-text", "long-warm-start", "fast-warm-start", "deep-warm-start",
+                    "terminating"] = option(
+        "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
+                "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
+                "otherwise), default (pomil's measured recipe), paper-text (the paper's text), long-warm-start (the "
+                "former default warm start: 3000 steps at lr 1e-3), fast-warm-start (600 steps at lr 3e-3, "
+                "the log std at 10x and fitted; worse on the paper's Hopper), deep-warm-start (the default's "
+                "schedule, the log std at 10x and fitted: 4/5 seeds on the paper's Hopper) or terminating (the "
+                "policy sees (z_t, dz_t) without a_{t-1}, and the fast warm start); config.json records the one that "
+                "ran; see PRESETS")
+    iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
+                             within="[0, inf)")
+    num_envs: int = option(256, "episodes collected per iteration (at most max_iteration_steps of them)",
+                           within="[1, inf)")
+    max_iteration_steps: int = option(65536, "long episodes: at most this many env steps per iteration, counted at the "
+                                             "demonstrations' longest episode: fewer than num_envs episodes (1000-step "
+                                             "Hopper: 65)", within="[1, inf)")
+    max_batch_steps: int = option(16384, "long episodes: at most this many steps in a batch of whole episodes "
+                                         "(warm-start, BC-term and critic batches): fewer than warm_start_batch and "
+                                         "critic_batch episodes (1000-step Hopper: 16)", within="[1, inf)")
+    sim: Literal["cpu", "warp"] = option("cpu", SIM_HELP)
+    precision: Literal["float32", "bfloat16"] = option(
+        "float32", "the updates' and the warm start's network passes (critic, posterior, policy and value; not the "
+                   "rollout's): float32, or bfloat16 through torch.autocast, with outputs, losses and weights in "
+                   "float32; measured on a CPU with bfloat16 instructions (AVX512-BF16): the training loop 7-9% faster "
+                   "on two torch threads, 1.34x on one; slower on a CPU without them; other numerics (docs/speed.md)")
+    rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
+                                     "torch's idle OpenMP workers off the cores that a batched simulator steps on",
+                                     within="[0, inf)")
+    lr: float = option(5e-5, "policy learning rate (Adam; the paper's text: 2e-4)", within="(0, inf)")
+    lr_value: float = option(5e-4, "value-function learning rate (Adam)", within="(0, inf)")
     termination: Literal["end", "absorbing"] = option(
         "end", "a policy episode that terminates (e.g. Hopper falls): end = its return ends there; absorbing = it "
                "goes on in an absorbing state paid the batch's lowest step reward, so ending early never pays (DAC; "
                "measured on standard Hopper: no better, see docs/hopper.md)")
-    gamma: float = option(0.99, "discount", within="(0, 1]")
-    gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
-    clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
     value_clip: float = option(0.0, "PPO value clip (0: off)", within="[0, inf)")
-    ppo_epochs: int = option(2, "PPO epochs per iteration", within="[1, inf)")
-    minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
     update_mode: Literal["sequence", "window"] = option("sequence",
                                                         "recurrent updates: whole sequences or random windows from a "
                                                         "zero state")
     window_length: int = option(8, "steps per window in window mode", within="[1, inf)")
-    bc_init_iterations: int = option(600, "behaviour-cloning steps on the demonstrations before adversarial training "
-                                           "(the warm start; 0: off)", within="[0, inf)")
-    bc_init_lr: float = option(1e-2, "Adam learning rate of the behaviour-cloning warm start (its peak; see "
-                                     "bc_init_lr_warmup and bc_init_lr_decay)", within="(0, inf)")
-    bc_init_lr_decay: bool = option(True, "decay the warm start's learning rate linearly to 0 over its steps")
-    bc_init_lr_warmup: float = option(0.2, "the share of the warm start's steps over which its learning rate first "
-                                           "rises linearly from 0 to bc_init_lr (with bc_init_lr_decay, the decay "
-                                           "follows over the rest)", within="[0, 1)")
-    bc_init_log_std_lr_scale: float = option(1.0, "the warm start's learning rate of the policy's log std, as a "
-                                                  "multiple of bc_init_lr (Adam moves a parameter by about lr a "
-                                                  "step: at 1x the log std needs thousands of steps to fit "
-                                                  "deterministic demonstrations)", within="(0, inf)")
-    bc_init_fit_log_std: bool = option(False, "end the warm start by setting the log std to its maximum-likelihood "
-                                              "value given the means: each action dimension's mean squared error on "
-                                              "all demonstrations (weighted by the codes' responsibilities)")
-    bc_init_code_lr_scale: float = option(10.0, "continuous codes with bc_init_codes mixture: the warm start's "
-                                                "learning rate of the episodes' own codes, as a multiple of "
-                                                "bc_init_lr", within="(0, inf)")
-    bc_init_batch: int = option(64, "episodes per behaviour-cloning warm-start step and BC-term batch (at most "
-                                    "max_batch_steps)", within="[1, inf)")
-    bc_init_codes: Literal["random", "mixture"] = option("mixture",
-                                                         "codes in the warm start: random per episode (InfoGAIL), or "
-                                                         "mixture: each code clones its own cluster of episodes "
-                                                         "(mixture likelihood; continuous codes: each episode's own "
-                                                         "code, fitted with the policy and spread as the prior)")
-    mixture_balance: Literal["dataset", "batch"] = option("dataset",
-                                                          "with bc_init_codes mixture: every code takes 1/K of "
-                                                          "all demonstration episodes (dataset, refreshed every 10 "
-                                                          "steps or pass) or of each random batch (batch: noisier, "
-                                                          "see MixtureAssignment)")
-    posterior_init_iterations: int = option(200, "with bc_init_codes mixture: posterior steps on the demonstrations, "
-                                                 "each episode labelled with its most likely code", within="[0, inf)")
-    log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
-    tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
     bc_weight: float = option(10.0,
                               "weight of the warm start's behaviour-cloning loss on the demonstrations, added to the "
                                     "policy's PPO loss (keeps the policy near the demonstrations; 0: off)",
@@ -289,8 +259,8 @@ class AdversarialConfig(RunConfig):
         # critic and posterior, bootstrapped random updates (windows); InfoGAIL's warm start (random codes).
         "paper-text": {
             "critic_optimizer": "rmsprop", "weight_clip": 0.01, "gradient_penalty": 0.0, "lr": 2e-4, "lr_critic": 2e-4,
-            "lr_posterior": 2e-4, "update_mode": "window", "bc_init_codes": "random", "bc_init_iterations": 300,
-            "bc_init_lr": 1e-3, "bc_init_lr_decay": False, "bc_init_lr_warmup": 0.0, "bc_weight": 0.0,
+            "lr_posterior": 2e-4, "update_mode": "window", "warm_start_codes": "random", "warm_start_iterations": 300,
+            "warm_start_lr": 1e-3, "warm_start_lr_decay": False, "warm_start_lr_warmup": 0.0, "bc_weight": 0.0,
             "policy_warmup_iterations": 0,
         },
         # 3000 steps at a constant 1e-3: the recipe of results/circles-ablations, hopper-speed and some rows of
@@ -307,6 +277,13 @@ class AdversarialConfig(RunConfig):
         "terminating": {"policy_obs_delta": True, "policy_prev_action": False, **FAST_WARM_START},
     }
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
+
+    RENAMED: ClassVar[dict[str, str]] = {f"bc_init_{k}": f"warm_start_{k}" for k in (
+        "iterations", "lr", "lr_decay", "lr_warmup", "log_std_lr_scale", "fit_log_std", "code_lr_scale", "batch",
+        "codes")}
+    """Old config keys, still read from config files and checkpoints (old -> new name)."""
+    FOLDED: ClassVar[dict[str, tuple[type, Any]]] = {"shared_value_encoder": (bool, _value_on_policy)}
+    """Retired config keys, still read: ``shared_value_encoder`` true is ``belief`` value-on-policy."""
 
     def __post_init__(self) -> None:
         super().__post_init__()  # every field in its interval (see the option declarations)
@@ -546,7 +523,7 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes:
     policy = GaussianPolicy(arch).to(device)
     heads_enc = "mlp" if cfg.belief == "policy" else enc
     value = heads.value(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx).to(device)
-    if cfg.shared_value_encoder or cfg.belief == "shared":
+    if cfg.belief in ("value-on-policy", "shared"):
         value.encoder = policy.encoder  # one module: the value loss also trains the policy's encoder
     m = Modules(
         policy=policy,
@@ -602,7 +579,7 @@ class AdversarialRun:
     num_codes: int
     guard: DivergenceGuard | None = None
     assignment: MixtureAssignment | None = None  # the BC term's code per demonstration episode (whole-set balance)
-    episode_codes: EpisodeCodes | None = None  # continuous codes, bc_init_codes mixture: each demo episode's own code
+    episode_codes: EpisodeCodes | None = None  # continuous codes, mixture warm start: each demo episode's own code
 
     @property
     def objective(self) -> str:
@@ -612,7 +589,7 @@ class AdversarialRun:
     def mixture(self) -> bool:
         """The warm start's and the BC term's likelihood: the discrete codes' mixture (else random
         codes, or continuous codes: each episode's own, ``episode_codes``)."""
-        return self.cfg.bc_init_codes == "mixture" and self.num_codes > 0 and self.cfg.code_kind == "discrete"
+        return self.cfg.warm_start_codes == "mixture" and self.num_codes > 0 and self.cfg.code_kind == "discrete"
 
     def demo_codes(self, idx: torch.Tensor) -> torch.Tensor | None:
         """The BC term's continuous codes for demonstration episodes ``idx``: each episode's own
@@ -658,10 +635,10 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
                   episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
 
-    Without ``mixture`` (``bc_init_codes = "random"``, InfoGAIL's initialisation) each
+    Without ``mixture`` (``warm_start_codes = "random"``, InfoGAIL's initialisation) each
     episode gets a random code, so the policy starts out ignoring it and the
     mutual-information reward later makes the codes choose between modes.  With
-    ``mixture`` (``bc_init_codes = "mixture"`` and a policy with codes) the policy maximises the
+    ``mixture`` (``warm_start_codes = "mixture"`` and a policy with codes) the policy maximises the
     demonstrations' likelihood under a uniform mixture of its codes, so each code clones
     its own cluster of episodes; the posterior then learns, on the demonstrations, to
     tell each episode's most likely code from its steps (``posterior_init_iterations``).
@@ -685,12 +662,12 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
     under its code in ``codes``: indices (E,) (cross-entropy) or continuous codes (E, d)
     (:func:`_code_gaussian_nll`).  Returns the last step's stats."""
     code_nll = _code_cross_entropy if codes.ndim == 1 else _code_gaussian_nll
-    post_opt = torch.optim.Adam(post.parameters(), lr=cfg.bc_init_lr)
+    post_opt = torch.optim.Adam(post.parameters(), lr=cfg.warm_start_lr)
     starts = first_step_starts(expert.mask)
     s: dict[str, float] = {}
     with progress_bar(cfg.posterior_init_iterations, "posterior warm start", cfg.progress) as bar:
         for _ in range(cfg.posterior_init_iterations):
-            idx = torch.randint(len(codes), (min(cfg.bc_init_batch, len(codes)),), generator=gen).to(codes.device)
+            idx = torch.randint(len(codes), (min(cfg.warm_start_batch, len(codes)),), generator=gen).to(codes.device)
             targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
             with precision_context(cfg.precision, starts.device):
                 loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
@@ -798,7 +775,7 @@ def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
     """One PPO update of policy and value on minibatch ``b``, with the BC term on demonstrations (bc_weight)."""
     cfg, m = run.cfg, run.m
     if cfg.bc_weight > 0:  # the BC term's demonstrations go through the policy's encoder with the minibatch
-        demo, demo_prev, demo_idx = demo_batch(run.expert, run.expert_prev, cfg.bc_init_batch, run.gen)
+        demo, demo_prev, demo_idx = demo_batch(run.expert, run.expert_prev, cfg.warm_start_batch, run.gen)
         feats, demo_feats = policy_and_demo_features(m.policy, b, demo, demo_prev)
     else:
         feats, _ = m.policy.features(b.observations, b.prev_actions, b.h0_policy, b.starts)
@@ -935,7 +912,7 @@ def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
     rewards = ("lr_critic", "lr_posterior") if LEARNERS[cfg.learner].codes else ("lr_critic",)
     return {"policy": lr_hint(cfg, "lr"), "value": lr_hint(cfg, "lr_value", *rewards),  # value targets are rewards
             "critic": lr_hint(cfg, "lr_critic"), "posterior": lr_hint(cfg, "lr_posterior"),
-            "reward": lr_hint(cfg, *rewards), "warm-start": lr_hint(cfg, "bc_init_lr")}
+            "reward": lr_hint(cfg, *rewards), "warm-start": lr_hint(cfg, "warm_start_lr")}
 
 
 def _environment(cfg: AdversarialConfig, device: torch.device):
@@ -977,7 +954,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                   f"has {cfg.num_envs} minibatches of one episode", file=sys.stderr)
         nets = {"policy": m.policy, "value": m.value, "critic": m.critic, "posterior": m.posterior}
         episode_codes = None
-        if cfg.code_kind == "continuous" and num_codes and cfg.bc_init_codes == "mixture":
+        if cfg.code_kind == "continuous" and num_codes and cfg.warm_start_codes == "mixture":
             episode_codes = EpisodeCodes(expert, num_codes, cfg.code_prior).to(loop.device)
             nets["episode_codes"] = episode_codes  # the BC term's codes, kept for --resume
         expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
@@ -991,7 +968,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         # A checkpoint at iteration 0 is that of a warm start alone (--iterations 0): resuming it goes on from there.
         init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
                                     episode_codes)
-                      if loop.iteration == 0 and not resume and cfg.bc_init_iterations > 0 else {})
+                      if loop.iteration == 0 and not resume and cfg.warm_start_iterations > 0 else {})
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
         return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
                         first_row={**(choice.stats() if choice else {}), **init_stats}, evaluate=evaluate,
@@ -1013,7 +990,7 @@ def auto_num_codes(cfg: AdversarialConfig, expert: PaddedEpisodes, execute: Call
     fit a few hundred Adam steps move it only about 1e-3 each, and the scores would measure mostly how
     far it got (Hopper, 150 steps: K 3 ahead of K 2 without the fit, K 2 clearly ahead with it)."""
     expert = replace(expert, actions=execute(expert.actions))  # as the warm start sees them
-    search_cfg = replace(cfg, **{**FAST_WARM_START, "bc_init_iterations": cfg.num_codes_search_iterations,
+    search_cfg = replace(cfg, **{**FAST_WARM_START, "warm_start_iterations": cfg.num_codes_search_iterations,
                                  "precision": "float32"})  # scores a few hundredths of a nat apart: no rounding
 
     def fit(k: int, train: PaddedEpisodes, train_prev: torch.Tensor) -> GaussianPolicy:
@@ -1045,10 +1022,10 @@ def recorded_choice(ckpt_path: Path) -> NumCodesChoice:
 
 def sized_for_episodes(cfg: AdversarialConfig, episode_steps: int) -> AdversarialConfig:
     """``cfg`` with its episode counts cut to the step caps for episodes of ``episode_steps``: num_envs
-    to max_iteration_steps, bc_init_batch and critic_batch to max_batch_steps (never below 1 episode),
+    to max_iteration_steps, warm_start_batch and critic_batch to max_batch_steps (never below 1 episode),
     with a note on stderr when one is cut.  The paper's 128-step Hopper and 33-step circles stay at
     the configured counts; Hopper's own 1000 steps get 65 episodes per iteration and batches of 16."""
-    caps = {"num_envs": cfg.max_iteration_steps, "bc_init_batch": cfg.max_batch_steps,
+    caps = {"num_envs": cfg.max_iteration_steps, "warm_start_batch": cfg.max_batch_steps,
             "critic_batch": cfg.max_batch_steps}
     cut = {k: episodes_within(cap, episode_steps) for k, cap in caps.items()}
     cut = {k: n for k, n in cut.items() if n < getattr(cfg, k)}

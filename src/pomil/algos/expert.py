@@ -30,13 +30,13 @@ from pomil.nn.normalize import RunningNorm
 from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.rl.collect import collect
 from pomil.rl.gae import gae
-from pomil.rl.ppo import normalize, ppo_loss
+from pomil.rl.ppo import PPOOptions, normalize, ppo_loss
 from pomil.rl.storage import Rollout
 from pomil.training import DivergenceGuard, RunLoop, lr_hint
 
 
 @dataclass(frozen=True)
-class ExpertConfig(RunConfig):
+class ExpertConfig(PPOOptions, RunConfig):
     env_id: str = option(HOPPER_ID, "Gymnasium environment id (1-D Box observation and action spaces)")
     task: Literal["forward", "backward", "none"] = option(
         "forward", "locomotion task: forward_reward_weight +1 or -1; none: the environment's own reward")
@@ -58,14 +58,6 @@ class ExpertConfig(RunConfig):
                                      within="[0, inf)")
     hidden_size: int = option(64, "width of the policy's and value's hidden layers", within="[1, inf)")
     lr: float = option(3e-4, "Adam learning rate (decays linearly to 0)", within="(0, inf)")
-    ppo_epochs: int = option(10, "PPO epochs per iteration (formerly 'epochs', still read)", within="[1, inf)")
-    minibatches: int = option(16, "minibatches per epoch", within="[1, inf)")
-    clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
-    gamma: float = option(0.99, "discount", within="(0, 1]")
-    gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
-    ent_coef: float = option(0.0, "entropy bonus", within="[0, inf)")
-    vf_coef: float = option(0.5, "value-loss weight", within="[0, inf)")
-    max_grad_norm: float = option(0.5, "gradient-norm clip", within="(0, inf)")
     log_std_init: float = option(0.0, "initial log std of the policy", within="(-inf, inf)")
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
     checkpoint_every: int = option(50, "iterations between checkpoints (one is always written at the end)",

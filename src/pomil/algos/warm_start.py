@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pomil.config import option
 from pomil.data import PaddedEpisodes
 from pomil.nn.codes import sample_prior, spread_as_prior
 from pomil.nn.policy import GaussianPolicy, shift_actions
@@ -27,22 +29,61 @@ if TYPE_CHECKING:
     from pomil.algos.adversarial import AdversarialConfig
 
 
+@dataclass(frozen=True)
+class WarmStartOptions:
+    """The mixture warm start: behaviour cloning of the demonstrations before the first adversarial iteration."""
+
+    warm_start_iterations: int = option(600, "behaviour-cloning steps on the demonstrations before adversarial "
+                                             "training (the warm start; 0: off)", within="[0, inf)")
+    warm_start_lr: float = option(1e-2, "Adam learning rate of the behaviour-cloning warm start (its peak; see "
+                                     "warm_start_lr_warmup and warm_start_lr_decay)", within="(0, inf)")
+    warm_start_lr_decay: bool = option(True, "decay the warm start's learning rate linearly to 0 over its steps")
+    warm_start_lr_warmup: float = option(0.2, "the share of the warm start's steps over which its learning rate "
+                                              "first rises linearly from 0 to warm_start_lr (with warm_start_lr_decay, "
+                                              "the decay follows over the rest)", within="[0, 1)")
+    warm_start_log_std_lr_scale: float = option(1.0, "the warm start's learning rate of the policy's log std, as a "
+                                                  "multiple of warm_start_lr (Adam moves a parameter by about lr a "
+                                                  "step: at 1x the log std needs thousands of steps to fit "
+                                                  "deterministic demonstrations)", within="(0, inf)")
+    warm_start_fit_log_std: bool = option(False, "end the warm start by setting the log std to its maximum-likelihood "
+                                              "value given the means: each action dimension's mean squared error on "
+                                              "all demonstrations (weighted by the codes' responsibilities)")
+    warm_start_code_lr_scale: float = option(10.0, "continuous codes with warm_start_codes mixture: the warm start's "
+                                                "learning rate of the episodes' own codes, as a multiple of "
+                                                "warm_start_lr", within="(0, inf)")
+    warm_start_batch: int = option(64, "episodes per behaviour-cloning warm-start step and BC-term batch (at most "
+                                    "max_batch_steps)", within="[1, inf)")
+    warm_start_codes: Literal["random", "mixture"] = option("mixture",
+                                                         "codes in the warm start: random per episode (InfoGAIL), or "
+                                                         "mixture: each code clones its own cluster of episodes "
+                                                         "(mixture likelihood; continuous codes: each episode's own "
+                                                         "code, fitted with the policy and spread as the prior)")
+    mixture_balance: Literal["dataset", "batch"] = option("dataset",
+                                                          "with warm_start_codes mixture: every code takes 1/K of "
+                                                          "all demonstration episodes (dataset, refreshed every 10 "
+                                                          "steps or pass) or of each random batch (batch: noisier, "
+                                                          "see MixtureAssignment)")
+    posterior_init_iterations: int = option(200, "with warm_start_codes mixture: posterior steps on the "
+                                                 "demonstrations, each episode labelled with its most likely code",
+                                            within="[0, inf)")
+
+
 FAST_WARM_START: dict[str, Any] = {
-    "bc_init_iterations": 600, "bc_init_lr": 3e-3, "bc_init_lr_decay": True, "bc_init_lr_warmup": 0.0,
-    "bc_init_log_std_lr_scale": 10.0, "bc_init_fit_log_std": True,
+    "warm_start_iterations": 600, "warm_start_lr": 3e-3, "warm_start_lr_decay": True, "warm_start_lr_warmup": 0.0,
+    "warm_start_log_std_lr_scale": 10.0, "warm_start_fit_log_std": True,
 }
 """The fast warm start's settings, lr 3e-3 without a rise (presets fast-warm-start and terminating, and every
 K's fit of the ``--num-codes auto`` search, which was calibrated on it)."""
 
 
 LONG_WARM_START: dict[str, Any] = {
-    "bc_init_iterations": 3000, "bc_init_lr": 1e-3, "bc_init_lr_decay": False, "bc_init_lr_warmup": 0.0,
-    "bc_init_log_std_lr_scale": 1.0, "bc_init_fit_log_std": False,
+    "warm_start_iterations": 3000, "warm_start_lr": 1e-3, "warm_start_lr_decay": False, "warm_start_lr_warmup": 0.0,
+    "warm_start_log_std_lr_scale": 1.0, "warm_start_fit_log_std": False,
 }
 """Preset long-warm-start: the former default warm start, 3000 steps at a constant lr 1e-3."""
 
 
-DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "bc_init_lr": 1e-2, "bc_init_lr_warmup": 0.2}
+DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "warm_start_lr": 1e-2, "warm_start_lr_warmup": 0.2}
 """Preset deep-warm-start: the fast warm start with the rate rising linearly to 1e-2 over the first 20% of the
 steps, then decaying to 0 (the default's schedule, with the fast warm start's log std: 10x and fitted)."""
 
@@ -319,7 +360,8 @@ def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_pr
     forward pass over every episode) then costs at most about a third of the training steps between."""
     if not (mixture and cfg.mixture_balance == "dataset"):
         return None
-    return MixtureAssignment(expert, expert_prev, refresh=max(10, math.ceil(expert.mask.shape[1] / cfg.bc_init_batch)))
+    refresh = max(10, math.ceil(expert.mask.shape[1] / cfg.warm_start_batch))
+    return MixtureAssignment(expert, expert_prev, refresh=refresh)
 
 
 CODE_SPREAD_EVERY = 10
@@ -331,8 +373,8 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
                                 episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
     """The warm start's behaviour cloning with continuous codes: each episode under a random code
     from the prior (InfoGAIL), or under its own code in ``episode_codes``, fitted with the policy
-    (its own learning rate, bc_init_code_lr_scale x bc_init_lr) and spread as the prior every
-    ``CODE_SPREAD_EVERY`` steps and at the end; then the log std's fit (``bc_init_fit_log_std``)."""
+    (its own learning rate, warm_start_code_lr_scale x warm_start_lr) and spread as the prior every
+    ``CODE_SPREAD_EVERY`` steps and at the end; then the log std's fit (``warm_start_fit_log_std``)."""
     opt, decay = warm_start_optimizer(policy, cfg, episode_codes)
     if episode_codes is not None:
         codes_of = lambda idx: episode_codes.codes[idx]  # noqa: E731
@@ -340,17 +382,17 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
         codes_of = lambda idx: sample_prior(cfg.code_prior, len(idx), policy.arch.num_codes,  # noqa: E731
                                             gen).to(idx.device)
     stats: dict[str, float] = {}
-    with progress_bar(cfg.bc_init_iterations, "warm start", cfg.progress) as bar:
-        for step in range(1, cfg.bc_init_iterations + 1):
+    with progress_bar(cfg.warm_start_iterations, "warm start", cfg.progress) as bar:
+        for step in range(1, cfg.warm_start_iterations + 1):
             with precision_context(cfg.precision, expert.mask.device):
-                stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, codes_of=codes_of)
+                stats = bc_step(policy, opt, expert, expert_prev, cfg.warm_start_batch, gen, codes_of=codes_of)
             decay.step()
-            if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.bc_init_iterations):
+            if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.warm_start_iterations):
                 episode_codes.spread_()
             check_warm_start_step(guard, f"warm-start step {step}", stats, policy)
             bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
             bar.update()
-    if cfg.bc_init_fit_log_std:
+    if cfg.warm_start_fit_log_std:
         codes = (episode_codes.codes.detach() if episode_codes is not None
                  else codes_of(torch.arange(expert.mask.shape[1], device=expert.mask.device)))
         stats.update(fit_log_std(policy, expert, expert_prev, codes=codes))
@@ -360,22 +402,22 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
 def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
                          mixture: bool, cfg: AdversarialConfig, gen: torch.Generator,
                          guard: DivergenceGuard | None = None, where: str = "") -> dict[str, float]:
-    """The policy's part of :func:`bc_warm_start`: ``bc_init_iterations`` behaviour-cloning steps
-    (the codes' mixture, or random codes), then the log std's fit (``bc_init_fit_log_std``).
+    """The policy's part of :func:`bc_warm_start`: ``warm_start_iterations`` behaviour-cloning steps
+    (the codes' mixture, or random codes), then the log std's fit (``warm_start_fit_log_std``).
     Returns the last step's stats; ``where`` prefixes the step in a divergence's message."""
     opt, decay = warm_start_optimizer(policy, cfg)
     stats: dict[str, float] = {}
     assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
-    with progress_bar(cfg.bc_init_iterations, f"{where}warm start", cfg.progress) as bar:
-        for step in range(1, cfg.bc_init_iterations + 1):
+    with progress_bar(cfg.warm_start_iterations, f"{where}warm start", cfg.progress) as bar:
+        for step in range(1, cfg.warm_start_iterations + 1):
             with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
-                stats = bc_step(policy, opt, expert, expert_prev, cfg.bc_init_batch, gen, num_codes, mixture,
+                stats = bc_step(policy, opt, expert, expert_prev, cfg.warm_start_batch, gen, num_codes, mixture,
                                 assignment)
             decay.step()
             check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
             bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
             bar.update()
-    if cfg.bc_init_fit_log_std:
+    if cfg.warm_start_fit_log_std:
         stats.update(fit_log_std(policy, expert, expert_prev, mixture))
     return stats
 
@@ -391,19 +433,19 @@ def check_warm_start_step(guard: DivergenceGuard | None, at: str, stats: dict[st
 
 def warm_start_optimizer(policy: GaussianPolicy, cfg: AdversarialConfig, episode_codes: EpisodeCodes | None = None,
                          ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
-    """Adam over the policy, its log std at ``bc_init_log_std_lr_scale`` times ``bc_init_lr`` (and
-    the episodes' continuous codes at ``bc_init_code_lr_scale`` times), and the schedule to step
-    after each update: a linear rise over the first ``bc_init_lr_warmup`` of the steps, then a linear
-    decay to 0 over the rest (``bc_init_lr_decay``)."""
+    """Adam over the policy, its log std at ``warm_start_log_std_lr_scale`` times ``warm_start_lr`` (and
+    the episodes' continuous codes at ``warm_start_code_lr_scale`` times), and the schedule to step
+    after each update: a linear rise over the first ``warm_start_lr_warmup`` of the steps, then a linear
+    decay to 0 over the rest (``warm_start_lr_decay``)."""
     rest = [p for name, p in policy.named_parameters() if name != "log_std"]
-    groups = [{"params": rest}, {"params": [policy.log_std], "lr": cfg.bc_init_lr * cfg.bc_init_log_std_lr_scale}]
+    groups = [{"params": rest}, {"params": [policy.log_std], "lr": cfg.warm_start_lr * cfg.warm_start_log_std_lr_scale}]
     if episode_codes is not None:
-        groups.append({"params": [episode_codes.codes], "lr": cfg.bc_init_lr * cfg.bc_init_code_lr_scale})
-    opt = torch.optim.Adam(groups, lr=cfg.bc_init_lr)
-    steps, rise = cfg.bc_init_iterations, int(cfg.bc_init_lr_warmup * cfg.bc_init_iterations)
+        groups.append({"params": [episode_codes.codes], "lr": cfg.warm_start_lr * cfg.warm_start_code_lr_scale})
+    opt = torch.optim.Adam(groups, lr=cfg.warm_start_lr)
+    steps, rise = cfg.warm_start_iterations, int(cfg.warm_start_lr_warmup * cfg.warm_start_iterations)
 
-    def factor(i: int) -> float:  # the learning rate of step i + 1, as a fraction of bc_init_lr
+    def factor(i: int) -> float:  # the learning rate of step i + 1, as a fraction of warm_start_lr
         if i < rise:
             return (i + 1) / rise
-        return 1 - (i - rise) / max(steps - rise, 1) if cfg.bc_init_lr_decay else 1.0
+        return 1 - (i - rise) / max(steps - rise, 1) if cfg.warm_start_lr_decay else 1.0
     return opt, torch.optim.lr_scheduler.LambdaLR(opt, factor)

@@ -1,8 +1,27 @@
-"""The clipped PPO objective as a pure function returning (loss, stats)."""
+"""The clipped PPO objective as a pure function returning (loss, stats), and PPO's options."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
+
+from pomil.config import option
+
+
+@dataclass(frozen=True)
+class PPOOptions:
+    """PPO's options (the experts' and the adversarial learners'): GAE, the clipped loss, its epochs and batches."""
+
+    gamma: float = option(0.99, "discount", within="(0, 1]")
+    gae_lambda: float = option(0.95, "GAE lambda", within="(0, 1]")
+    clip: float = option(0.2, "PPO ratio clip", within="(0, inf)")
+    ppo_epochs: int = option(10, "PPO epochs per iteration", within="[1, inf)")
+    minibatches: int = option(16, "PPO minibatches per epoch", within="[1, inf)")
+    ent_coef: float = option(0.0, "lambda2: entropy bonus in the PPO loss", within="[0, inf)")
+    vf_coef: float = option(0.5, "weight of the value loss in the PPO loss", within="[0, inf)")
+    max_grad_norm: float = option(0.5, "gradient-norm clip of the policy's and of the value's update",
+                                  within="(0, inf)")
 
 
 def masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
