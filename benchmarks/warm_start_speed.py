@@ -65,7 +65,7 @@ def measure(demos_path: str, learner: str, seed: int, settings: dict) -> dict[st
     demos, env_id, env_kwargs = load_training_demos(demos_path)
     num_codes = resolve_num_codes(cfg, demos)
     torch.manual_seed(seed)
-    m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, "cpu")
+    m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes=num_codes, device="cpu")
     expert = demos.padded("cpu")
     expert = replace(expert, actions=executed_actions_fn(env_id, env_kwargs)(expert.actions))
     prev = shift_actions(expert.actions)
@@ -74,13 +74,17 @@ def measure(demos_path: str, learner: str, seed: int, settings: dict) -> dict[st
     precision = precision_context(cfg.precision, torch.device("cpu"))  # as train_adversarial runs it
     t0 = time.perf_counter()
     with precision:
-        bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, posterior_init_iterations=0), gen)
+        bc_warm_start(m, expert, prev, num_codes=num_codes, mixture=mixture, cfg=replace(cfg,
+                                                                                         posterior_init_iterations=0),
+                      gen=gen)
     policy_s = time.perf_counter() - t0
-    nll = demo_nll(m.policy, expert, prev, mixture)
+    nll = demo_nll(m.policy, expert, prev, generator=mixture)
     t1 = time.perf_counter()
     if mixture:  # the posterior's steps (the same number in every recipe), timed on their own
         with precision_context(cfg.precision, torch.device("cpu")):
-            bc_warm_start(m, expert, prev, num_codes, mixture, replace(cfg, warm_start_iterations=0), gen)
+            bc_warm_start(m, expert, prev, num_codes=num_codes, mixture=mixture, cfg=replace(cfg,
+                                                                                             warm_start_iterations=0),
+                          gen=gen)
     return {"seconds": policy_s + time.perf_counter() - t1, "policy_s": policy_s, "nll": nll,
             "log_std": m.policy.log_std.mean().item()}
 

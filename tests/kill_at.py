@@ -25,8 +25,8 @@ if __name__ == "__main__":
     if point == "checkpoint":
         save = training.save_run_checkpoint
 
-        def save_then_kill(path, logger, guard, iteration, payload):
-            save(path, logger, guard, iteration, payload)
+        def save_then_kill(path, logger, guard, *, iteration, payload):
+            save(path, logger, guard, iteration=iteration, payload=payload)
             if iteration == at:
                 _kill()
         training.save_run_checkpoint = save_then_kill

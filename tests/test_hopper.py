@@ -47,10 +47,10 @@ def test_shipped_experts_reproduce_their_recorded_returns():
 def test_collect_masks_steps_after_termination():
     env = make_vec_env(HOPPER_ID, hopper_kwargs("forward", "standard"), 4, seed=0)
     policy = GaussianPolicy(PolicyArch(11, 3, "mlp", 16, 0, 1.0))  # wide noise: falls within a few dozen steps
-    value = heads.value(11, 3, 0, "mlp", 16)
-    roll, _, _, rewards = collect(env, policy, value, 0, executed_actions_fn(HOPPER_ID, {}),
-                                  torch.Generator().manual_seed(0),
-                                  torch.device("cpu"))
+    value = heads.value(11, 3, 0, encoder="mlp", hidden_size=16)
+    roll, _, _, rewards = collect(env, policy, value, num_codes=0, execute=executed_actions_fn(HOPPER_ID, {}),
+                                  generator=torch.Generator().manual_seed(0),
+                                  device=torch.device("cpu"))
     lengths = roll.mask.sum(0)
     assert roll.num_steps == int(lengths.max()) < 1000
     for i, n in enumerate(lengths.tolist()):

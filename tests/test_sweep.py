@@ -89,8 +89,8 @@ if os.environ.get("POMIL_TEST_HOOK_DIR"):
     def patch(training):
         save, run = training.save_run_checkpoint, training.RunLoop.run
 
-        def save_then_kill(path, logger, guard, iteration, payload):
-            save(path, logger, guard, iteration, payload)
+        def save_then_kill(path, logger, guard, *, iteration, payload):
+            save(path, logger, guard, iteration=iteration, payload=payload)
             if iteration == 100:
                 try:
                     os.remove(os.path.join(where, "kill-once"))  # the first process to get here, only

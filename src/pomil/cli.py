@@ -104,10 +104,10 @@ def cmd_demos(args: argparse.Namespace) -> int:
         radius_range = (float(cfg.radius_range[0]), float(cfg.radius_range[1]))
     try:
         radius = cfg.radius if radius_range is None else sum(radius_range) / 2
-        spec = make_spec(cfg.modes, radius, cfg.episode_length, cfg.history, cfg.action_type)
+        spec = make_spec(cfg.modes, radius, cfg.episode_length, history=cfg.history, action_type=cfg.action_type)
         if cfg.circles:
             spec = dataclasses.replace(spec, circles=tuple(map(_circle, cfg.circles)))
-        demos = record_circles_demos(spec, cfg.episodes, cfg.noise_std, cfg.seed, radius_range)
+        demos = record_circles_demos(spec, cfg.episodes, cfg.noise_std, seed=cfg.seed, radius_range=radius_range)
     except ValueError as err:
         raise PomilError(f"demos circles: {err}") from None
     demos.save(cfg.out)
@@ -181,8 +181,9 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
     if not Path(cfg.expert).is_file():
         raise PomilError(f"{cfg.expert}: no expert checkpoint there (train one: pomil experts train --env-id ...)")
     try:
-        demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None, _mask_arg(cfg.observation_mask),
-                                    cfg.seed, action_noise=cfg.action_noise)
+        demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None,
+                                    observation_mask=_mask_arg(cfg.observation_mask),
+                                    seed=cfg.seed, action_noise=cfg.action_noise)
     except ValueError as err:
         raise PomilError(f"demos record: {err}") from None
     demos.save(cfg.out)
@@ -213,7 +214,8 @@ def cmd_demos_merge(args: argparse.Namespace) -> int:
         raise PomilError("demos merge: --out is required")
     sources = [Demonstrations.load(f) for f in args.files]
     try:
-        demos = merge_demos(sources, list(cfg.proportions) or None, cfg.episodes or None, cfg.seed, list(args.files))
+        demos = merge_demos(sources, list(cfg.proportions) or None, cfg.episodes or None, seed=cfg.seed,
+                            names=list(args.files))
     except ValueError as err:
         raise PomilError(f"demos merge: {err}") from None
     demos.save(cfg.out)
@@ -258,7 +260,8 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
             raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
                              f"{task})")
     try:
-        demos = record_hopper_demos(experts, episodes, cfg.setting, cfg.seed, _mask_arg(cfg.observation_mask),
+        demos = record_hopper_demos(experts, episodes, cfg.setting, seed=cfg.seed,
+                                    observation_mask=_mask_arg(cfg.observation_mask),
                                     action_noise=noise)
     except ValueError as err:
         raise PomilError(f"demos hopper: {err}") from None
@@ -357,11 +360,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if policy.code_dim:
         from pomil.eval.circles import evaluate_code_radius
 
-        metrics, _ = evaluate_code_radius(policy, args.code_values, args.episodes_per_code, args.seed,
-                                          args.deterministic)
+        metrics, _ = evaluate_code_radius(policy, args.code_values, args.episodes_per_code, seed=args.seed,
+                                          deterministic=args.deterministic)
         print(json.dumps(metrics, indent=2) if args.json else _format_code_radius(metrics))
         return 0
-    metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, args.deterministic, args.none_threshold)
+    metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, deterministic=args.deterministic,
+                                  threshold=args.none_threshold)
     print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
     return 0
 
@@ -386,7 +390,7 @@ def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
         raise PomilError(f"evaluate: a {policy.env.get('id')} policy needs --demos (the demonstrations whose "
                          "expert returns normalise the scores)")
     reference = reference_of(demos.metadata, args.demos)
-    m = evaluate_tasks(policy, reference, args.episodes_per_code, args.seed, deterministic=not args.stochastic)
+    m = evaluate_tasks(policy, reference, args.episodes_per_code, seed=args.seed, deterministic=not args.stochastic)
     if args.json:
         print(json.dumps(m, indent=2))
         return 0
@@ -436,7 +440,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
             codes = np.zeros((5 * args.episodes_per_code, policy.code_dim), dtype=np.float32)
             codes[:, 0] = np.repeat(np.arange(5), args.episodes_per_code)
             codes[:, 0] = prior_grid(policy.code_prior, 5).numpy()[codes[:, 0].astype(int)]
-        roll = rollout_circles(policy, args.episodes_per_code, args.seed, args.deterministic, codes)
+        roll = rollout_circles(policy, args.episodes_per_code, args.seed, deterministic=args.deterministic, codes=codes)
         groups = roll["codes"] if codes is None else np.repeat(np.arange(5), args.episodes_per_code)
         panels.append((f"{policy.algo}: {Path(ckpt).parent.name or ckpt}", roll["positions"], groups,
                        "code" if codes is None else "code value #"))

@@ -418,7 +418,7 @@ class RunConfig:
             _, env_id, env_kwargs = load_training_demos(str(values.get("demos") or ""),
                                                         parse_kwargs(values.get("env_kwargs") or ()))
             ends = ends_on_failure(env_id, env_kwargs)
-        except Exception:  # noqa: BLE001 -- no file, a bad file or an unknown environment: the run says which
+        except PomilError:  # no file, a bad file or an unknown environment: the run says which when it loads them
             return "default"
         return cls.TERMINATING if ends and cls.TERMINATING in getattr(cls, "PRESETS", {}) else "default"
 

@@ -14,7 +14,7 @@ from pomil.errors import PomilError
 
 
 def record_circles_demos(
-    spec: CirclesSpec, episodes: int, noise_std: float = DEFAULT_EXPERT_NOISE, seed: int = 0,
+    spec: CirclesSpec, episodes: int, noise_std: float = DEFAULT_EXPERT_NOISE, *, seed: int = 0,
     radius_range: tuple[float, float] | None = None,
 ) -> Demonstrations:
     """Equal numbers of episodes from every mode's expert, in shuffled order.
@@ -76,7 +76,7 @@ def record_circles_demos(
 
 
 def record_expert_demos(expert_path: str, episodes: int, task: str | None = None,
-                        observation_mask: str | list[int] | None = "positions-only", seed: int = 0,
+                        *, observation_mask: str | list[int] | None = "positions-only", seed: int = 0,
                         reset_seed: int | None = None, reference_episodes: int = 100,
                         action_noise: float = 0.0) -> Demonstrations:
     """``episodes`` deterministic episodes of one expert checkpoint on its own
@@ -101,12 +101,14 @@ def record_expert_demos(expert_path: str, episodes: int, task: str | None = None
     expert = TrainedPolicy.load(expert_path)
     if expert.env.get("id") == ENV_ID:
         raise PomilError(f"{expert_path}: circle policies are recorded with `pomil demos circles`")
-    return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes,
-                          task or task_name(expert.env.get("kwargs") or {}), observation_mask, seed,
-                          seed if reset_seed is None else reset_seed, reference_episodes, action_noise)
+    return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes=episodes,
+                          task=task or task_name(expert.env.get("kwargs") or {}), observation_mask=observation_mask,
+                          seed=seed,
+                          reset_seed=seed if reset_seed is None else reset_seed, reference_episodes=reference_episodes,
+                          action_noise=action_noise)
 
 
-def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: str, observation_mask,
+def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, task: str, observation_mask,
                    seed: int, reset_seed: int, reference_episodes: int, action_noise: float = 0.0) -> Demonstrations:
     from pomil.envs import make_vec_env
     from pomil.envs.wrappers import resolve_observation_mask
@@ -119,7 +121,7 @@ def _record_policy(expert, expert_path: str, kwargs: dict, episodes: int, task: 
     env_id = expert.env["id"]
     mask = resolve_observation_mask(env_id, kwargs, observation_mask)
     expert_mask = expert.env.get("observation_mask")
-    sim = make_vec_env(env_id, kwargs, episodes, "cpu").sim
+    sim = make_vec_env(env_id, kwargs, episodes, device="cpu").sim
     full = sim.reset(reset_seed)
     x0 = _x_position(sim)
     expert.reset(episodes, seed=seed)
@@ -219,7 +221,7 @@ def _label_index(label_names: list[str], name: str) -> int:
     return label_names.index(name)
 
 
-def _merge_task_metadata(merged: dict[str, dict], weight: dict[str, int], metadata: dict, n: int, name: str) -> None:
+def _merge_task_metadata(merged: dict[str, dict], weight: dict[str, int], metadata: dict, *, n: int, name: str) -> None:
     """Add one source's per-task metadata (``n`` episodes taken) to ``merged``: its tasks' environment keywords
     (which must agree between files), and each figure as an episode-weighted mean over the files holding the task."""
     for key, table in merged.items():
@@ -236,7 +238,7 @@ def _merge_task_metadata(merged: dict[str, dict], weight: dict[str, int], metada
 
 
 def merge_demos(sources: list[Demonstrations], proportions: list[float] | None = None, episodes: int | None = None,
-                seed: int = 0, names: list[str] | None = None) -> Demonstrations:
+                *, seed: int = 0, names: list[str] | None = None) -> Demonstrations:
     """One unlabeled training set from recordings of several experts / tasks.
 
     Episodes are taken from the sources in ``proportions`` (default: equal) -- as many as the sources allow,
@@ -278,7 +280,7 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
             if d.states is not None:
                 pieces_states.append(d.states[lo:hi])
             lengths.append(int(hi - lo))
-        _merge_task_metadata(merged_md, weight, d.metadata, int(n), name)
+        _merge_task_metadata(merged_md, weight, d.metadata, n=int(n), name=name)
     order = rng.permutation(len(lengths))
     bounds = np.concatenate([[0], np.cumsum([lengths[i] for i in order])])
     metadata = {**first, **{k: v for k, v in merged_md.items() if v},
@@ -297,7 +299,7 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
     )
 
 
-def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", seed: int = 0,
+def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", *, seed: int = 0,
                         observation_mask: str | list[int] = "positions-only",
                         reference_episodes: int = 100, action_noise: float = 0.0) -> Demonstrations:
     """Equal numbers of episodes from each Hopper task's expert (checkpoint paths
@@ -312,8 +314,10 @@ def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting
         if expert.obs_dim != 11 or expert.env.get("id") != HOPPER_ID:
             raise PomilError(f"{path}: expected a Hopper expert on the full 11-number observation, got obs_dim "
                              f"{expert.obs_dim}")
-        recordings.append(_record_policy(expert, path, hopper_kwargs(task, setting), episodes_per_task, task,
-                                         observation_mask, seed, seed + 1000 * j, reference_episodes, action_noise))
+        recordings.append(_record_policy(expert, path, hopper_kwargs(task, setting), episodes=episodes_per_task,
+                                         task=task,
+                                         observation_mask=observation_mask, seed=seed, reset_seed=seed + 1000 * j,
+                                         reference_episodes=reference_episodes, action_noise=action_noise))
     demos = merge_demos(recordings, seed=seed, names=list(experts.values()))
     return Demonstrations(demos.observations, demos.actions, demos.episode_bounds, demos.labels, demos.states,
                           {**demos.metadata, "setting": setting})
@@ -322,7 +326,7 @@ def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting
 def _zero_action_return(env_id: str, env_kwargs: dict, episodes: int, seed: int) -> float:
     from pomil.envs import make_vec_env
 
-    sim = make_vec_env(env_id, env_kwargs, episodes, "cpu").sim
+    sim = make_vec_env(env_id, env_kwargs, episodes, device="cpu").sim
     sim.reset(seed)
     ret = np.zeros(episodes)
     while not sim.done.all():

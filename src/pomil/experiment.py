@@ -273,13 +273,27 @@ def expand_grid(rows: list[Row], grid: Any, source: str) -> list[Row]:
 
 
 # ================================================================ one run
-def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, evaluation: dict[str, int],
-            progress: bool, resume: bool) -> dict[str, Any]:
-    """Train one (row, seed) run and evaluate it; ``run_dir/result.json`` is written last (the run's
-    "finished" mark).  ``resume``: a finished run of the same values is not run again, and a run with a
-    checkpoint but no result.json (stopped, or its worker died) continues from its checkpoint."""
+@dataclass(frozen=True)
+class RunJob:
+    """One (row, seed) run: the learner, its config values, where it goes, and how it is evaluated."""
+
+    learner: str
+    values: dict[str, Any]
+    run_dir: str
+    seed: int
+    evaluation: dict[str, int]
+    progress: bool
+    resume: bool
+    """A finished run of the same values is not run again, and a run with a checkpoint but no result.json
+    (stopped, or its worker died) continues from its checkpoint."""
+
+
+def run_one(job: RunJob) -> dict[str, Any]:
+    """Train one run and evaluate it; ``run_dir/result.json`` is written last (the run's "finished" mark)."""
     from pomil.api import TrainedPolicy
 
+    learner, values, run_dir, seed = job.learner, job.values, job.run_dir, job.seed
+    evaluation, progress, resume = job.evaluation, job.progress, job.resume
     out = Path(run_dir)
     done = out / "result.json"
     if resume and finished(out, values):
@@ -293,7 +307,8 @@ def run_one(learner: str, values: dict[str, Any], run_dir: str, seed: int, evalu
     t0 = time.perf_counter()
     ckpt = trainer.train(cfg, resume=again)
     wall = time.perf_counter() - t0
-    kind, metrics = evaluate_run(TrainedPolicy.load(ckpt), Demonstrations.load(cfg.demos), seed, out, evaluation)
+    kind, metrics = evaluate_run(TrainedPolicy.load(ckpt), Demonstrations.load(cfg.demos), seed, run_dir=out,
+                                 evaluation=evaluation)
     metrics.update(checkpoint=str(ckpt), train_seed=seed)
     result = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "kind": kind,
               "metrics": metrics, "config": {k: v for k, v in to_dict(cfg).items() if k not in _RUN_FIELDS}}
@@ -313,7 +328,7 @@ _RUN_FIELDS = ("out", "seed", "progress", "demos")
 """Config fields that differ between the runs of one row (or between machines), not settings."""
 
 
-def evaluate_run(policy: Any, demos: Demonstrations, seed: int, run_dir: Path,
+def evaluate_run(policy: Any, demos: Demonstrations, seed: int, *, run_dir: Path,
                  evaluation: dict[str, int]) -> tuple[str, dict[str, Any]]:
     """(kind, metrics with ``success``) of a trained policy; circles rollouts go to ``run_dir/rollouts.npz``."""
     from pomil.envs import evaluation_kind
@@ -412,12 +427,12 @@ def run_experiment(spec: Spec, how: Execution) -> dict[str, Any]:
     workers = 1 if how.ray else max(1, min(how.jobs or int(usable_cpus() // how.cpus_per_run), len(keys)))
     progress = how.progress and workers == 1 and not how.ray  # bars side by side would overwrite each other
     evaluation = {k: getattr(spec, k) for k in ("episodes_per_code", "code_values", "episodes_per_value")}
-    jobs = [(row.learner, spec.values(row), str((how.runs / row.name / f"seed{seed}").resolve()), seed, evaluation,
-             progress, how.resume) for row, seed in keys]
+    jobs = [RunJob(row.learner, spec.values(row), str((how.runs / row.name / f"seed{seed}").resolve()), seed,
+                   evaluation, progress, how.resume) for row, seed in keys]
     names = [f"[{row.name}] seed {seed}" for row, seed in keys]
     where = ("on Ray" + (f" at {how.address}" if how.address else " (local)") if how.ray else
              f"{workers} at a time in local worker processes" if workers > 1 else "one after another")
-    reused = sum(finished(Path(job[2]), job[1]) for job in jobs) if how.resume else 0
+    reused = sum(finished(Path(job.run_dir), job.values) for job in jobs) if how.resume else 0
     again = f"; {reused} finished before, reused; {len(keys) - reused} to run" if how.resume else ""
     print(f"{spec.name}: {len(spec.rows)} row(s) x {spec.seeds} seed(s) = {len(keys)} runs{again}, {where}",
           flush=True)
@@ -426,7 +441,8 @@ def run_experiment(spec: Spec, how: Execution) -> dict[str, Any]:
         line = f"FAILED: {r.error}" if not r.ok else _one_line_result(r.value)
         print(f"[{n}/{total}] {r.name}: {line} ({r.wall_s:.0f} s)", flush=True)
 
-    done = run_jobs(run_one, jobs, names, ray=how.ray, address=how.address or None, cpus_per_job=how.cpus_per_run,
+    done = run_jobs(run_one, [(job,) for job in jobs], names, ray=how.ray, address=how.address or None,
+                    cpus_per_job=how.cpus_per_run,
                     capture_errors=how.keep_going, on_done=report,
                     costs=[LEARNERS[row.learner].cost for row, _ in keys], workers=workers)
     results = {(row.name, seed): r for (row, seed), r in zip(keys, done, strict=True)}

@@ -69,7 +69,7 @@ def _datasets_path(root: str | Path | None) -> Iterator[None]:
             os.environ["MINARI_DATASETS_PATH"] = old
 
 
-def export_minari(demos: Demonstrations, dataset_id: str, root: str | Path | None = None, author: str = "pomil",
+def export_minari(demos: Demonstrations, dataset_id: str, root: str | Path | None = None, *, author: str = "pomil",
                   description: str | None = None) -> Path:
     """Write ``demos`` as the local Minari dataset ``dataset_id``; returns its folder.
 

@@ -79,7 +79,7 @@ def _one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {text[-1] if text else ''}"[:300]
 
 
-def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], ray: bool = False,
+def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], *, ray: bool = False,
              address: str | None = None, cpus_per_job: float = 1.0, capture_errors: bool = True,
              on_done: Callable[[JobResult, int, int], None] | None = None,
              costs: Sequence[float] | None = None, workers: int = 1) -> list[JobResult]:
@@ -108,8 +108,9 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
             on_done(result, sum(r is not None for r in results), total)
 
     if not ray and workers > 1 and total > 1:
-        return _run_local(fn, jobs, names, min(workers, total), max(1, int(cpus_per_job)), capture_errors, costs,
-                          finish, results)
+        return _run_local(fn, jobs, names, workers=min(workers, total), threads=max(1, int(cpus_per_job)),
+                          capture_errors=capture_errors, costs=costs,
+                          finish=finish, results=results)
     if not ray:
         for i, (job, name) in enumerate(zip(jobs, names, strict=True)):
             try:
@@ -121,10 +122,11 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
                 finish(i, JobResult(name, error=_one_line(err), details=traceback.format_exc()))
         return results  # type: ignore[return-value]
 
-    return _run_ray(fn, jobs, names, address, cpus_per_job, capture_errors, costs, finish, results)
+    return _run_ray(fn, jobs, names, address=address, cpus_per_job=cpus_per_job, capture_errors=capture_errors,
+                    costs=costs, finish=finish, results=results)
 
 
-def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], address: str | None,
+def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], *, address: str | None,
              cpus_per_job: float, capture_errors: bool, costs: Sequence[float] | None,
              finish: Callable[[int, JobResult], None], results: list[JobResult | None]) -> list[JobResult]:
     """The jobs as Ray tasks, costliest first (``address``: an existing cluster; None starts a local Ray here and
@@ -169,7 +171,7 @@ def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
     return results  # type: ignore[return-value]
 
 
-def _run_local(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], workers: int, threads: int,
+def _run_local(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], *, workers: int, threads: int,
                capture_errors: bool, costs: Sequence[float] | None, finish: Callable[[int, JobResult], None],
                results: list[JobResult | None]) -> list[JobResult]:
     """The jobs in ``workers`` spawned processes (spawn, not fork: torch's threads do not survive a fork)."""

@@ -133,7 +133,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     atomic_write(Path(path), lambda f: torch.save(payload, f))
 
 
-def save_run_checkpoint(path: str | Path, logger: RunLogger, guard: DivergenceGuard, iteration: int,
+def save_run_checkpoint(path: str | Path, logger: RunLogger, guard: DivergenceGuard, *, iteration: int,
                         payload: dict[str, Any]) -> None:
     """A run's checkpoint of ``iteration``: the metrics flushed first, so that a resumed run's log
     reads as one; the guard told, so that a later divergence names it."""
@@ -200,7 +200,7 @@ class RunStart:
 
 
 def resume_run(
-    ckpt_path: Path, config: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, Any],
+    ckpt_path: Path, config: dict[str, Any], nets: dict[str, Any], *, optimizers: dict[str, Any],
     generator: torch.Generator, device: torch.device | str = "cpu", config_class: type | None = None,
     carried: dict[str, Any] | None = None,
 ) -> RunStart:
@@ -600,8 +600,9 @@ class RunLoop:
         self.carried = {k: v for k, v in (carried or {}).items() if v is not None}
         self.lock.acquire(self.resume)
         config = to_dict(self.config)
-        begun = (resume_run(self.ckpt_path, config, nets, optimizers, self.generator, self.device, type(self.config),
-                            self.carried) if self.resume else RunStart())
+        begun = (resume_run(self.ckpt_path, config, nets, optimizers=optimizers, generator=self.generator,
+                            device=self.device, config_class=type(self.config),
+                            carried=self.carried) if self.resume else RunStart())
         self.iteration = begun.iteration
         self.env_steps = begun.env_steps if env_steps else None
         self.guard.saved(begun.iteration)
@@ -642,10 +643,10 @@ class RunLoop:
                 stats.update(self._rates(time.perf_counter() - t_start), **(log_extras() if log_extras else {}))
                 logger.log(it, stats)
             if it % cfg.checkpoint_every == 0 or it == cfg.iterations:
-                save_run_checkpoint(self.ckpt_path, logger, self.guard, it, self.state())
+                save_run_checkpoint(self.ckpt_path, logger, self.guard, iteration=it, payload=self.state())
             logger.update()
         if cfg.iterations == 0:  # a learner allowed no iterations (the adversarial warm start alone)
-            save_run_checkpoint(self.ckpt_path, logger, self.guard, 0, self.state())
+            save_run_checkpoint(self.ckpt_path, logger, self.guard, iteration=0, payload=self.state())
         logger.close()
         return self.ckpt_path
 

@@ -38,12 +38,12 @@ def test_critic_steps_increase_the_wasserstein_estimate(encoder, clip, gp, opt):
     g = torch.Generator().manual_seed(0)
     expert = seq_batch(torch.randn(12, 32, 2, generator=g) + 1.0, torch.randn(12, 32, 2, generator=g))
     policy = as_rollout(torch.randn(12, 32, 2, generator=g) - 1.0, torch.randn(12, 32, 2, generator=g))
-    critic = heads.critic(2, 2, encoder, 32)
+    critic = heads.critic(2, 2, encoder, hidden_size=32)
     optim = torch.optim.RMSprop(critic.parameters(),
                                 lr=5e-3) if opt == "rmsprop" else torch.optim.Adam(critic.parameters(), lr=1e-3)
-    _, first = critic_loss(critic, expert, policy, "wasserstein", gp)
+    _, first = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=gp)
     for _ in range(30):
-        loss, _ = critic_loss(critic, expert, policy, "wasserstein", gp)
+        loss, _ = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=gp)
         optim.zero_grad()
         loss.backward()
         optim.step()
@@ -51,7 +51,7 @@ def test_critic_steps_increase_the_wasserstein_estimate(encoder, clip, gp, opt):
             with torch.no_grad():
                 for p in critic.parameters():
                     p.clamp_(-clip, clip)
-    _, last = critic_loss(critic, expert, policy, "wasserstein", 0.0)
+    _, last = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=0.0)
     assert last["critic/wasserstein"] > first["critic/wasserstein"] + 1e-3, (first, last)
     assert last["critic/wasserstein"] > 0
 
@@ -67,7 +67,7 @@ def test_posterior_learns_codes_from_code_dependent_sequences():
     obs = (torch.arange(T).view(T, 1, 1) * drift.view(1, N, 1) * 0.3 + noise).expand(T, N, 2).contiguous()
     act = torch.randn(T, N, 2, generator=g)
     batch = as_rollout(obs, act)
-    post = heads.posterior(2, 2, K, "gru", 32)
+    post = heads.posterior(2, 2, K, encoder="gru", hidden_size=32)
     optim = torch.optim.Adam(post.parameters(), lr=3e-3)
     code_steps = codes.unsqueeze(0).expand(T, -1)
     for _ in range(150):
@@ -116,11 +116,12 @@ def test_adversarial_same_seed_same_run_and_resume(demos_path, tmp_path):
 
 
 def test_rollout_feeds_executed_actions_to_critic_and_as_previous_action(demos_path):
-    m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), 2, 2, 2, "cpu")
+    m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), 2, 2, num_codes=2, device="cpu")
     env = make_vec_env("pomil/Circles-v0", {}, 8)
-    roll, _, _, env_rewards = collect(env, m.policy, m.value, 2, executed_actions_fn("pomil/Circles-v0", {}),
-                                      torch.Generator().manual_seed(0),
-                                     torch.device("cpu"))
+    roll, _, _, env_rewards = collect(env, m.policy, m.value, num_codes=2,
+                                      execute=executed_actions_fn("pomil/Circles-v0", {}),
+                                      generator=torch.Generator().manual_seed(0),
+                                     device=torch.device("cpu"))
     norms = roll.executed_actions.norm(dim=-1)
     torch.testing.assert_close(norms, torch.ones_like(norms))  # expert demonstrations hold unit vectors too
     assert not torch.allclose(roll.actions.norm(dim=-1), norms)  # the raw Gaussian samples do not
@@ -214,7 +215,7 @@ def test_value_on_policy_is_one_module_trained_once_and_the_retired_flag_reads_a
     assert from_dict(AdversarialConfig, {"shared_value_encoder": False}, "old").belief == "separate"
     with pytest.raises(ConfigError, match="true with belief 'policy' has no equivalent"):
         from_dict(AdversarialConfig, {"shared_value_encoder": True, "belief": "policy"}, "old")
-    m, _ = build_modules(cfg, 2, 2, 2, "cpu")
+    m, _ = build_modules(cfg, 2, 2, num_codes=2, device="cpu")
     assert m.value.encoder is m.policy.encoder
     ckpt = load_checkpoint(train_adversarial(cfg))
     policy_enc = {k: v for k, v in ckpt["nets"]["policy"].items() if k.startswith("encoder.")}
@@ -231,7 +232,7 @@ def test_a_shared_belief_is_one_encoder_stepped_by_every_loss(demos_path, tmp_pa
         return cfg, load_checkpoint(train_adversarial(cfg))
 
     cfg, shared = run("shared")
-    m, _ = build_modules(cfg, 2, 2, 2, "cpu")
+    m, _ = build_modules(cfg, 2, 2, num_codes=2, device="cpu")
     assert m.value.encoder is m.critic.encoder is m.posterior.encoder is m.policy.encoder
     enc = {k: v for k, v in shared["nets"]["policy"].items() if k.startswith("encoder.")}
     for net in ("value", "critic", "posterior"):
@@ -245,7 +246,7 @@ def test_a_shared_belief_is_one_encoder_stepped_by_every_loss(demos_path, tmp_pa
 
 def test_a_policy_only_belief_gives_feed_forward_value_critic_and_posterior(demos_path, tmp_path):
     cfg = _cfg(demos_path, tmp_path / "p", learner="infogail-pomdp", belief="policy")
-    m, _ = build_modules(cfg, 2, 2, 2, "cpu")
+    m, _ = build_modules(cfg, 2, 2, num_codes=2, device="cpu")
     recurrent = {name: any(isinstance(x, torch.nn.GRU | torch.nn.GRUCell) for x in net.modules())
                  for name, net in (("policy", m.policy), ("value", m.value), ("critic", m.critic),
                                    ("posterior", m.posterior))}
@@ -290,7 +291,7 @@ def test_noisy_expert_actions_carry_the_policy_noise_and_stay_shifted(demos_path
 
     expert = Demonstrations.load(demos_path).padded()
     m, _ = build_modules(_cfg(demos_path, "unused", learner="infogail-pomdp"), expert.observations.shape[-1],
-                         expert.actions.shape[-1], 2, "cpu")
+                         expert.actions.shape[-1], num_codes=2, device="cpu")
     identity = lambda a: a  # noqa: E731
     with torch.no_grad():
         m.policy.log_std.fill_(math.log(0.3))
@@ -338,10 +339,10 @@ def test_bc_term_through_the_minibatch_unroll_equals_its_own_unroll(demo_steps):
             from pomil.algos.warm_start import demo_batch
             demo, demo_prev, _ = demo_batch(demos, prev, 8, g)
             feats, demo_feats = policy_and_demo_features(policy, b, demo, demo_prev)
-            bc, _ = demo_nll(policy, demo_feats, demo, g, 2, mixture)
+            bc, _ = demo_nll(policy, demo_feats, demo, generator=g, num_codes=2, mixture=mixture)
         else:
             feats, _ = policy.features(b.observations, b.prev_actions, b.h0_policy, b.starts)
-            bc, _ = demo_bc_loss(policy, demos, prev, 8, g, 2, mixture)
+            bc, _ = demo_bc_loss(policy, demos, prev, batch_episodes=8, generator=g, num_codes=2, mixture=mixture)
         ppo_term = policy.dist(feats, b.codes).log_prob(b.actions).sum()
         (ppo_term + bc).backward()
         return ppo_term.detach(), bc.detach(), [p.grad.clone() for p in policy.parameters()]
@@ -368,14 +369,16 @@ def test_belief_encoder_goes_to_every_recurrent_network_and_only_there(belief_en
     kind = {"gru": BeliefEncoder, "lstm": LSTMEncoder, "attention": AttentionEncoder}[belief_encoder]
     cfg = AdversarialConfig(learner="infogail-pomdp", belief_encoder=belief_encoder, attention_context=5,
                             hidden_size=8)
-    m, arch = build_modules(cfg, 2, 2, 3, "cpu")
+    m, arch = build_modules(cfg, 2, 2, num_codes=3, device="cpu")
     assert arch.encoder == belief_encoder and arch.context == 5
     assert all(type(net.encoder) is kind for net in (m.policy, m.value, m.critic, m.posterior))
     if belief_encoder == "attention":
         assert {net.encoder.context for net in (m.policy, m.value, m.critic, m.posterior)} == {5}
-    m, _ = build_modules(replace(cfg, belief="policy"), 2, 2, 3, "cpu")  # the ablation keeps feed-forward heads
+    m, _ = build_modules(replace(cfg, belief="policy"), 2, 2, num_codes=3,
+                         device="cpu")  # the ablation keeps feed-forward heads
     assert type(m.policy.encoder) is kind
     assert all(type(net.encoder) is MLPEncoder for net in (m.value, m.critic, m.posterior))
     for learner in ("gail", "infogail"):  # feed-forward learners whatever the option says
-        m, arch = build_modules(replace(cfg, learner=learner), 2, 2, 3 if learner == "infogail" else 0, "cpu")
+        m, arch = build_modules(replace(cfg, learner=learner), 2, 2, num_codes=3 if learner == "infogail" else 0,
+                                device="cpu")
         assert arch.encoder == "mlp" and type(m.critic.encoder) is MLPEncoder

@@ -195,7 +195,8 @@ def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code(balance):
     opt = torch.optim.Adam(policy.parameters(), lr=3e-3)
     assignment = MixtureAssignment(data, prev) if balance == "dataset" else None
     for _ in range(150):
-        stats = bc_step(policy, opt, data, prev, 32, g, num_codes=2, mixture=True, assignment=assignment)
+        stats = bc_step(policy, opt, data, prev_actions=prev, batch_episodes=32, generator=g, num_codes=2,
+                        mixture=True, assignment=assignment)
     codes = most_likely_codes(policy, data, prev)
     agreement = (codes == cluster).float().mean().item()
     assert max(agreement, 1 - agreement) == 1.0, codes  # codes are a relabelling of the clusters

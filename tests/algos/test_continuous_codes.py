@@ -40,20 +40,22 @@ def _cfg(demos_path, out, **kw):
 
 
 def test_networks_take_and_give_continuous_codes_of_their_dimension(radius_demos_path):
-    m, arch = build_modules(_cfg(radius_demos_path, "unused"), 2, 2, 2, "cpu")
+    m, arch = build_modules(_cfg(radius_demos_path, "unused"), 2, 2, num_codes=2, device="cpu")
     assert arch.continuous_codes and arch.num_codes == 2 and arch.code_prior == "uniform"
     assert m.policy.code_embed.in_features == 2
     assert m.posterior.out_dim == 4  # mean and log std per dimension
-    env = make_vec_env("pomil/Circles-v0", {}, 5, "cpu")
+    env = make_vec_env("pomil/Circles-v0", {}, 5, device="cpu")
     gen = torch.Generator().manual_seed(0)
-    roll, next_values, codes, _ = collect(env, m.policy, m.value, 2, executed_actions_fn("pomil/Circles-v0", {}),
-                                          gen, torch.device("cpu"), code_kind="continuous", code_prior="uniform")
+    roll, next_values, codes, _ = collect(env, m.policy, m.value, num_codes=2,
+                                          execute=executed_actions_fn("pomil/Circles-v0", {}),
+                                          generator=gen, device=torch.device("cpu"), code_kind="continuous",
+                                          code_prior="uniform")
     assert codes.shape == (5, 2) and codes.dtype == torch.float32 and codes.abs().max() <= 1
     assert roll.codes.shape == (33, 5, 2) and torch.equal(roll.codes[7], codes)
     out, _ = m.posterior.unroll(roll.observations, roll.prev_actions, m.posterior.initial_state(5), roll.starts,
                                 extra=roll.executed_actions)
     assert out.shape == (33, 5, 4)
-    r, stats = rewards(m, roll, codes, _cfg(radius_demos_path, "unused"), "wasserstein")
+    r, stats = rewards(m, roll, codes, cfg=_cfg(radius_demos_path, "unused"), objective="wasserstein")
     assert r.shape == (33, 5) and math.isfinite(stats["reward/log_posterior"])
 
 
@@ -63,7 +65,7 @@ def test_continuous_posterior_loss_and_reward_are_the_gaussians_log_likelihood_o
     (0, log 2) at every step; for code c = (1, 1) the log-likelihood per step is
     log N(1; 0.5, 1) + log N(1; -1, 2) = -0.125 - 0.5 - log 2 - log(2 pi)."""
     cfg = _cfg(radius_demos_path, "unused", normalize_reward=False, mi_weight=2.0)
-    m, _ = build_modules(cfg, 2, 2, 2, "cpu")
+    m, _ = build_modules(cfg, 2, 2, num_codes=2, device="cpu")
     with torch.no_grad():
         last = m.posterior.mlp[-1]
         last.weight.zero_()
@@ -71,25 +73,26 @@ def test_continuous_posterior_loss_and_reward_are_the_gaussians_log_likelihood_o
         crit_last = m.critic.mlp[-1]
         crit_last.weight.zero_()
         crit_last.bias.fill_(0.25)
-    env = make_vec_env("pomil/Circles-v0", {}, 3, "cpu")
-    roll, _, _, _ = collect(env, m.policy, m.value, 2, executed_actions_fn("pomil/Circles-v0", {}),
-                            torch.Generator().manual_seed(1), torch.device("cpu"), code_kind="continuous")
+    env = make_vec_env("pomil/Circles-v0", {}, 3, device="cpu")
+    roll, _, _, _ = collect(env, m.policy, m.value, num_codes=2, execute=executed_actions_fn("pomil/Circles-v0", {}),
+                            generator=torch.Generator().manual_seed(1), device=torch.device("cpu"),
+                            code_kind="continuous")
     codes = torch.ones(3, 2)
     expected = -0.125 - 0.5 - math.log(2.0) - math.log(2 * math.pi)
     loss, stats = posterior_loss(m.posterior, roll, codes.expand(33, 3, 2), "continuous")
     assert loss.item() == pytest.approx(-expected, abs=1e-5)
     assert stats["posterior/code_error"] == pytest.approx((0.5 + 2.0) / 2, abs=1e-6)
     assert stats["posterior/log_std"] == pytest.approx(math.log(2.0) / 2, abs=1e-6)
-    r, _ = rewards(m, roll, codes, cfg, "wasserstein")
+    r, _ = rewards(m, roll, codes, cfg=cfg, objective="wasserstein")
     assert torch.allclose(r, torch.full((33, 3), 0.25 + 2.0 * expected), atol=1e-5)
 
 
 def test_discrete_posterior_loss_is_unchanged_by_the_code_kind_argument(radius_demos_path):
     cfg = _cfg(radius_demos_path, "unused", code_kind="discrete", code_dim=1)
-    m, _ = build_modules(cfg, 2, 2, 3, "cpu")
-    env = make_vec_env("pomil/Circles-v0", {}, 4, "cpu")
-    roll, _, idx, _ = collect(env, m.policy, m.value, 3, executed_actions_fn("pomil/Circles-v0", {}),
-                              torch.Generator().manual_seed(2), torch.device("cpu"))
+    m, _ = build_modules(cfg, 2, 2, num_codes=3, device="cpu")
+    env = make_vec_env("pomil/Circles-v0", {}, 4, device="cpu")
+    roll, _, idx, _ = collect(env, m.policy, m.value, num_codes=3, execute=executed_actions_fn("pomil/Circles-v0", {}),
+                              generator=torch.Generator().manual_seed(2), device=torch.device("cpu"))
     logits, _ = m.posterior.unroll(roll.observations, roll.prev_actions, m.posterior.initial_state(4), roll.starts,
                                    extra=roll.executed_actions)
     loss, _ = posterior_loss(m.posterior, roll, idx.expand(33, 4))

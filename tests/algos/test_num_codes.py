@@ -299,8 +299,8 @@ def test_the_search_fits_on_the_fast_schedule_whatever_the_runs_warm_start(demos
     from pomil.data import Demonstrations
 
     seen = []
-    monkeypatch.setattr(adv, "clone_demonstrations", lambda policy, train, prev, k, mixture, cfg, *a: seen.append(
-        (k, mixture, cfg)) or {})
+    monkeypatch.setattr(adv, "clone_demonstrations", lambda policy, train, prev, *, num_codes, mixture, cfg, **k:
+                        seen.append((num_codes, mixture, cfg)) or {})
     cfg = from_dict(AdversarialConfig, {"demos": str(demos_path), "num_codes": "auto", "num_codes_max": 3,
                                         "num_codes_search_iterations": 7, "hidden_size": 8, "warm_start_lr": 1e-4})
     demos = Demonstrations.load(demos_path).padded("cpu")

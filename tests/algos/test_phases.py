@@ -33,13 +33,14 @@ def make_run(demos, **kw):
     gen = torch.Generator().manual_seed(0)
     env_id, kwargs = demos.metadata["env_id"], demos.metadata["env_kwargs"]
     execute = executed_actions_fn(env_id, kwargs)
-    m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, 2, "cpu")
+    m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes=2, device="cpu")
     expert = demos.padded("cpu")
     expert = replace(expert, actions=execute(expert.actions))
     sampler = BatchSampler(cfg.update_mode, cfg.window_length)
     run = AdversarialRun(cfg, m, build_optimizers(cfg, m), gen, sampler, expert, shift_actions(expert.actions),
                          execute, num_codes=2)
-    collected = collect(make_vec_env(env_id, kwargs, cfg.num_envs), m.policy, m.value, 2, execute, gen, "cpu")
+    collected = collect(make_vec_env(env_id, kwargs, cfg.num_envs), m.policy, m.value, num_codes=2, execute=execute,
+                        generator=gen, device="cpu")
     return run, collected
 
 
@@ -89,11 +90,12 @@ def test_the_posterior_phase_moves_only_the_posterior_and_is_empty_without_codes
 
 def test_rewards_standardise_the_critic_term_and_add_the_weighted_log_posterior(demos):
     run, c = make_run(demos, mi_weight=0.0)
-    roll, s = with_rewards(run, c.rollout, c.codes, c.next_values)
+    roll, s = with_rewards(run, c.rollout, c.codes, next_values=c.next_values)
     mask = roll.mask
     assert masked_mean(roll.rewards, mask).item() == pytest.approx(0.0, abs=1e-5)
     assert masked_mean(roll.rewards ** 2, mask).sqrt().item() == pytest.approx(1.0, abs=1e-4)
-    weighted, s2 = with_rewards(replace(run, cfg=replace(run.cfg, mi_weight=2.0)), c.rollout, c.codes, c.next_values)
+    weighted, s2 = with_rewards(replace(run, cfg=replace(run.cfg, mi_weight=2.0)), c.rollout, c.codes,
+                                next_values=c.next_values)
     assert s2["reward/total"] == pytest.approx(s["reward/total"] + 2.0 * s2["reward/log_posterior"], abs=1e-5)
     assert roll.advantages.shape == roll.returns.shape == (33, 8)
 
@@ -112,34 +114,36 @@ def fall_or_stay_batch():
 
 def test_a_return_that_ends_at_termination_pays_for_falling_when_rewards_are_negative():
     r, mask, term, trunc = fall_or_stay_batch()
-    _, ret = gae(r, torch.zeros(4, 2), torch.zeros(4, 2), term, trunc, gamma=0.5, lam=1.0)
+    _, ret = gae(r, torch.zeros(4, 2), torch.zeros(4, 2), terminated=term, truncated=trunc, gamma=0.5, lam=1.0)
     assert ret[0].tolist() == pytest.approx([-1.5, -1.875])  # falling: -1 - 0.5; staying: -1 - .5 - .25 - .125
 
 
 def test_the_absorbing_state_takes_the_lowest_reward_so_falling_never_pays():
     r, mask, term, trunc = fall_or_stay_batch()
     r[3, 1] = -3.0  # the batch's lowest step reward, on the step that stays up last
-    nv, v_abs = absorbing_bootstrap(r, mask, term, torch.zeros(4, 2), gamma=0.5)
+    nv, v_abs = absorbing_bootstrap(r, mask, term, next_values=torch.zeros(4, 2), gamma=0.5)
     assert v_abs == pytest.approx(-6.0)  # -3 / (1 - 0.5)
     assert nv[1, 0].item() == pytest.approx(-6.0) and nv.sum().item() == pytest.approx(-6.0)  # only where it fell
-    _, ret = gae(r, torch.zeros(4, 2), nv, torch.zeros_like(term), term | trunc, gamma=0.5, lam=1.0)
+    _, ret = gae(r, torch.zeros(4, 2), nv, terminated=torch.zeros_like(term), truncated=term | trunc, gamma=0.5,
+                 lam=1.0)
     falls, stays = -1 - 0.5 - 0.25 * 6.0, -1 - 0.5 - 0.25 - 0.125 * 3  # -3.0 < -2.125
     assert ret[0].tolist() == pytest.approx([falls, stays])
-    assert absorbing_bootstrap(r, mask, torch.zeros_like(term), torch.zeros(4, 2), gamma=0.5)[1] == 0.0
+    assert absorbing_bootstrap(r, mask, torch.zeros_like(term), next_values=torch.zeros(4, 2), gamma=0.5)[1] == 0.0
 
 
 def test_absorbing_termination_leaves_batches_without_terminations_unchanged(demos):
     run, c = make_run(demos, termination="absorbing")
     assert not c.rollout.terminated.any()
-    a, _ = with_rewards(run, c.rollout, c.codes, c.next_values)
-    e, _ = with_rewards(replace(run, cfg=replace(run.cfg, termination="end")), c.rollout, c.codes, c.next_values)
+    a, _ = with_rewards(run, c.rollout, c.codes, next_values=c.next_values)
+    e, _ = with_rewards(replace(run, cfg=replace(run.cfg, termination="end")), c.rollout, c.codes,
+                        next_values=c.next_values)
     assert torch.equal(a.returns, e.returns) and torch.equal(a.advantages, e.advantages)
 
 
 @pytest.mark.parametrize("mode", ["sequence", "window"])
 def test_the_policy_phase_waits_out_the_warm_up_then_moves_the_policy(demos, mode):
     run, c = make_run(demos, update_mode=mode)
-    roll, _ = with_rewards(run, c.rollout, c.codes, c.next_values)
+    roll, _ = with_rewards(run, c.rollout, c.codes, next_values=c.next_values)
     policy, value = params(run.m.policy), params(run.m.value)
     s = update_policy(run, roll, it=1)  # policy_warmup_iterations = 1
     assert not changed(policy, run.m.policy) and changed(value, run.m.value)
@@ -168,7 +172,7 @@ def test_bfloat16_updates_round_the_networks_passes_but_keep_outputs_losses_and_
     with run16.precision():
         after16 = critic(run16)
     update_posterior(run16, roll, c32.codes)
-    roll16, _ = with_rewards(run16, roll, c32.codes, c32.next_values)
+    roll16, _ = with_rewards(run16, roll, c32.codes, next_values=c32.next_values)
     p16 = update_policy(run16, roll16, it=2)
     moved32, moved16 = critic(run32) - f32, after16 - f16
     assert torch.corrcoef(torch.stack([moved16.flatten(), moved32.flatten()]))[0, 1] > 0.8  # moved alike
@@ -187,8 +191,9 @@ def test_a_bfloat16_warm_start_fits_the_demonstrations_as_the_float32_one(demos)
     for precision, enclosing in (("float32", False), ("bfloat16", False), ("bfloat16", True)):
         run, _ = make_run(demos, precision=precision, **{**FAST_WARM_START, "warm_start_iterations": 20})
         with torch.autocast("cpu", enabled=False) if enclosing else contextlib.nullcontext():
-            stats = clone_demonstrations(run.m.policy, run.expert, run.expert_prev, 2, True, run.cfg,
-                                         torch.Generator().manual_seed(0))
+            stats = clone_demonstrations(run.m.policy, run.expert, run.expert_prev, num_codes=2, mixture=True,
+                                         cfg=run.cfg,
+                                         gen=torch.Generator().manual_seed(0))
         nll[precision, enclosing] = stats["bc/nll"]
     assert nll["bfloat16", False] != nll["float32", False]
     for enclosing in (False, True):
@@ -206,3 +211,19 @@ def test_no_function_in_the_package_is_longer_than_a_screen():
     long = [f"{p.relative_to(src)}:{n.name} ({n.end_lineno - n.lineno + 1} lines)" for p, n in functions
             if n.end_lineno - n.lineno + 1 > 60]
     assert long == []
+
+
+def test_functions_of_five_or_more_parameters_take_at_most_three_positionally():
+    """Module-level functions of the package: the parameters after the third are keyword-only where a function
+    has five or more, so that a call names what it passes (``collect(env, policy, value, num_codes=K, ...)``)."""
+    import ast
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[2] / "src" / "pomil"
+    functions = [(p, n) for p in src.rglob("*.py") for n in ast.parse(p.read_text()).body
+                 if isinstance(n, ast.FunctionDef)]
+    assert len(functions) > 200  # the whole package was read
+    wide = [f"{p.relative_to(src)}:{n.name}" for p, n in functions
+            if len(n.args.posonlyargs + n.args.args) + len(n.args.kwonlyargs) >= 5
+            and len(n.args.posonlyargs + n.args.args) > 3]
+    assert wide == []

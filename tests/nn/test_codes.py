@@ -62,12 +62,13 @@ def test_spread_as_prior_keeps_the_order_and_takes_the_priors_quantiles():
 
 def test_codes_drawn_for_rollouts_have_the_kinds_shapes_and_the_priors_support():
     gen = torch.Generator().manual_seed(0)
-    idx, vec = draw_codes("discrete", "uniform", 5, 3, gen)
+    idx, vec = draw_codes("discrete", "uniform", 5, width=3, generator=gen)
     assert idx.shape == (5,) and vec.shape == (5, 3) and torch.equal(vec.argmax(-1), idx)
-    c, v = draw_codes("continuous", "uniform", 1000, 2, gen)
+    c, v = draw_codes("continuous", "uniform", 1000, width=2, generator=gen)
     assert c.shape == (1000, 2) and torch.equal(c, v) and c.abs().max() <= 1 and c.min() < -0.9
     g = sample_prior("gaussian", 4000, 1, gen)
     assert abs(g.mean().item()) < 0.1 and abs(g.std().item() - 1) < 0.1
     # discrete draws are those of before continuous codes existed
     gen_a, gen_b = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
-    assert torch.equal(draw_codes("discrete", "uniform", 7, 4, gen_a)[0], torch.randint(4, (7,), generator=gen_b))
+    assert torch.equal(draw_codes("discrete", "uniform", 7, width=4, generator=gen_a)[0], torch.randint(4, (7,),
+                                                                                                        generator=gen_b))

@@ -12,7 +12,7 @@ RECURRENT = [("gru", 32), ("lstm", 32), ("attention", 1), ("attention", 4), ("at
 
 def _encoder(kind, context=32, hidden=8, query_chunk=None):
     torch.manual_seed(0)
-    enc = make_encoder(kind, OBS, ACT, hidden, context)
+    enc = make_encoder(kind, OBS, ACT, hidden_size=hidden, context=context)
     if query_chunk is not None:
         enc.query_chunk = query_chunk  # several attention blocks per unroll
     return enc
@@ -150,7 +150,7 @@ def test_attention_heads_divide_the_width():
 
 def test_unknown_encoder_names_the_choices():
     with pytest.raises(ValueError, match="'mlp', 'gru', 'lstm', 'attention'"):
-        make_encoder("transformer", 2, 2, 8)
+        make_encoder("transformer", 2, 2, hidden_size=8)
 
 
 def test_policy_arch_records_the_context_for_attention_only():
@@ -195,7 +195,7 @@ def test_input_view_sees_the_scaled_observation_change_and_zeros_for_the_previou
 @pytest.mark.parametrize("kind", ["mlp", "gru", "attention"])
 def test_input_view_unroll_matches_repeated_steps_with_mid_block_starts_and_a_carried_state(kind):
     torch.manual_seed(0)
-    enc = make_encoder(kind, OBS, ACT, 8, 4, obs_delta=True, prev_action=False)
+    enc = make_encoder(kind, OBS, ACT, hidden_size=8, context=4, obs_delta=True, prev_action=False)
     enc.delta_scale.copy_(torch.tensor([3.0, 0.5, 2.0]))
     N = 5
     h0 = _carried_state(enc, N, 1)
@@ -214,13 +214,13 @@ def test_input_view_unroll_matches_repeated_steps_with_mid_block_starts_and_a_ca
 def test_fit_input_scale_is_one_over_the_std_of_the_in_episode_changes():
     from pomil.nn.encoders import fit_input_scale
 
-    enc = make_encoder("gru", 1, ACT, 8, obs_delta=True)
+    enc = make_encoder("gru", 1, ACT, hidden_size=8, obs_delta=True)
     obs = torch.tensor([[0.0, 5.0], [1.0, 5.0], [3.0, 100.0]]).unsqueeze(-1)  # (T 3, E 2, 1)
     mask = torch.tensor([[True, True], [True, True], [True, False]])  # episode 1 ends after step 1
     fit_input_scale(enc, obs, mask)
     changes = torch.tensor([1.0, 2.0, 0.0])  # episode 0: 1, 2; episode 1: 0 (its padded step does not count)
     torch.testing.assert_close(enc.delta_scale, 1 / changes.std().reshape(1))
-    plain = make_encoder("gru", 1, ACT, 8)
+    plain = make_encoder("gru", 1, ACT, hidden_size=8)
     fit_input_scale(plain, obs, mask)  # no view: nothing to set
     assert not hasattr(plain, "delta_scale")
 

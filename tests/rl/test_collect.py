@@ -28,10 +28,11 @@ def test_values_from_one_unroll_match_stepping_through_episodes_of_different_len
     torch.manual_seed(0)
     env = Recorder(make_vec_env(HOPPER_ID, hopper_kwargs("forward", "standard"), 6, seed=3))
     policy = GaussianPolicy(PolicyArch(11, 3, "gru", 16, 2, 1.0))  # wide noise: falls early, each copy at its own step
-    value = heads.value(11, 3, 2, "gru", 16)
+    value = heads.value(11, 3, 2, encoder="gru", hidden_size=16)
     threads = torch.get_num_threads()
-    roll, next_values, code_idx, _ = collect(env, policy, value, 2, executed_actions_fn(HOPPER_ID, {}),
-                                            torch.Generator().manual_seed(0), torch.device("cpu"))
+    roll, next_values, code_idx, _ = collect(env, policy, value, num_codes=2, execute=executed_actions_fn(HOPPER_ID,
+                                                                                                          {}),
+                                            generator=torch.Generator().manual_seed(0), device=torch.device("cpu"))
     assert torch.get_num_threads() == threads  # the rollout's one thread is given back
     lengths = roll.mask.sum(0)
     assert len(set(lengths.tolist())) > 1 and roll.num_steps == int(lengths.max())

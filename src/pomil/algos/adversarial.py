@@ -341,7 +341,7 @@ class BatchSampler:
         sees them (noised or not) and ``prev`` = shift_actions(actions)."""
         T, E = expert.mask.shape
         if self.windows:
-            t_idx, e = window_index(T, E, self.window_length, count, gen)
+            t_idx, e = window_index(T, E, self.window_length, count=count, generator=gen)
         else:
             e = torch.randint(E, (count,), generator=gen)
             t_idx = torch.arange(T).unsqueeze(1).expand(-1, len(e))
@@ -364,7 +364,7 @@ class BatchSampler:
             yield code_steps, roll
             return
         count = max(1, roll.num_steps * roll.num_envs // self.window_length)
-        t_idx, env = window_index(roll.num_steps, roll.num_envs, self.window_length, count, gen)
+        t_idx, env = window_index(roll.num_steps, roll.num_envs, self.window_length, count=count, generator=gen)
         dev = roll.starts.device
         t_idx, env = t_idx.to(dev), env.to(dev)
         batch = roll._gather(t_idx, env, roll.h0_policy[env] * 0, roll.h0_value[env] * 0, zero_first=True)
@@ -413,7 +413,7 @@ def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy,
 
 
 def critic_loss(
-    critic: BeliefHead, expert: tuple, policy: Rollout, objective: str, gp_weight: float,
+    critic: BeliefHead, expert: tuple, policy: Rollout, *, objective: str, gp_weight: float,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     e_obs, e_prev, e_act, e_starts, e_mask = expert
 
@@ -457,32 +457,33 @@ def posterior_loss(post: BeliefHead, batch: Rollout, code_idx_steps: torch.Tenso
     """Masked negative log-likelihood of each step's code: code_idx_steps (T, B) code indices
     (cross-entropy), or continuous codes (T, B, d) (Gaussian, :func:`_code_gaussian_nll`)."""
     code_nll = _code_cross_entropy if code_kind == "discrete" else _code_gaussian_nll
-    return code_nll(post, batch.observations, batch.prev_actions, batch.executed_actions, batch.starts, batch.mask,
-                    code_idx_steps)
+    return code_nll(post, batch.observations, batch.prev_actions, actions=batch.executed_actions,
+                    starts=batch.starts, mask=batch.mask, targets=code_idx_steps)
 
 
-def _code_cross_entropy(post: BeliefHead, obs, prev_actions, actions, starts, mask,
-                        code_idx_steps) -> tuple[torch.Tensor, dict[str, float]]:
+def _code_cross_entropy(post: BeliefHead, obs, prev_actions, *, actions, starts, mask,
+                        targets) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked mean cross-entropy of each step's code index; targets (T, B)."""
     logits, _ = post.unroll(obs, prev_actions, post.initial_state(obs.shape[1], obs.device), starts, extra=actions)
-    ce = F.cross_entropy(logits.flatten(0, 1), code_idx_steps.flatten(), reduction="none").view_as(code_idx_steps)
+    ce = F.cross_entropy(logits.flatten(0, 1), targets.flatten(), reduction="none").view_as(targets)
     loss = masked_mean(ce, mask)
-    acc = masked_mean((logits.argmax(-1) == code_idx_steps).float(), mask)
+    acc = masked_mean((logits.argmax(-1) == targets).float(), mask)
     return loss, {"posterior/loss": loss.item(), "posterior/accuracy": acc.item()}
 
 
-def _code_gaussian_nll(post: BeliefHead, obs, prev_actions, actions, starts, mask,
-                       codes_steps) -> tuple[torch.Tensor, dict[str, float]]:
-    """Masked mean of -log N(c; mu(b_t), sigma(b_t)) over the steps; codes_steps (T, B, d)."""
+def _code_gaussian_nll(post: BeliefHead, obs, prev_actions, *, actions, starts, mask,
+                       targets) -> tuple[torch.Tensor, dict[str, float]]:
+    """Masked mean of -log N(c; mu(b_t), sigma(b_t)) over the steps; targets (T, B, d) continuous codes."""
     out, _ = post.unroll(obs, prev_actions, post.initial_state(obs.shape[1], obs.device), starts, extra=actions)
-    loss = masked_mean(-code_log_likelihood(out, codes_steps, "continuous"), mask)
+    loss = masked_mean(-code_log_likelihood(out, targets, "continuous"), mask)
     mean, log_std = gaussian_params(out)
-    err = masked_mean((mean - codes_steps).abs().mean(-1), mask)
+    err = masked_mean((mean - targets).abs().mean(-1), mask)
     return loss, {"posterior/loss": loss.item(), "posterior/code_error": err.item(),
                   "posterior/log_std": masked_mean(log_std.mean(-1), mask).item()}
 
 
 @torch.no_grad()
-def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, cfg: AdversarialConfig,
+def rewards(m: Modules, roll: Rollout, code_idx: torch.Tensor, *, cfg: AdversarialConfig,
             objective: str) -> tuple[torch.Tensor, dict[str, float]]:
     """r_t = norm(f_t) + lambda1 log P(c | b_t, a_t); ``code_idx`` (N,) code indices, or (N, d)
     continuous codes (log N(c; mu, sigma), see :func:`pomil.nn.codes.code_log_likelihood`)."""
@@ -515,22 +516,24 @@ def policy_arch(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: i
                       cfg.code_prior)
 
 
-def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: int,
+def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, *, num_codes: int,
                   device: torch.device | str) -> tuple[Modules, PolicyArch]:
     enc = cfg.belief_encoder if LEARNERS[cfg.learner].recurrent else "mlp"
     ctx = cfg.attention_context
     arch = policy_arch(cfg, obs_dim, act_dim, num_codes)
     policy = GaussianPolicy(arch).to(device)
     heads_enc = "mlp" if cfg.belief == "policy" else enc
-    value = heads.value(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx).to(device)
+    value = heads.value(obs_dim, act_dim, num_codes, encoder=heads_enc, hidden_size=cfg.hidden_size,
+                        context=ctx).to(device)
     if cfg.belief in ("value-on-policy", "shared"):
         value.encoder = policy.encoder  # one module: the value loss also trains the policy's encoder
     m = Modules(
         policy=policy,
         value=value,
-        critic=heads.critic(obs_dim, act_dim, heads_enc, cfg.hidden_size, ctx).to(device),
-        posterior=(heads.posterior(obs_dim, act_dim, num_codes, heads_enc, cfg.hidden_size, ctx,
-                                   cfg.code_kind).to(device) if num_codes else None),
+        critic=heads.critic(obs_dim, act_dim, heads_enc, hidden_size=cfg.hidden_size, context=ctx).to(device),
+        posterior=(heads.posterior(obs_dim, act_dim, num_codes, encoder=heads_enc, hidden_size=cfg.hidden_size,
+                                   context=ctx,
+                                   code_kind=cfg.code_kind).to(device) if num_codes else None),
     )
     if cfg.belief == "shared":  # one belief b_t for all four; each loss's own optimiser steps it
         m.critic.encoder = policy.encoder
@@ -630,7 +633,7 @@ def build_optimizers(cfg: AdversarialConfig, m: Modules) -> dict[str, torch.opti
     return opt
 
 
-def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int, mixture: bool,
+def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, num_codes: int, mixture: bool,
                   cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
                   episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
     """Behaviour cloning of the whole (unlabelled) demonstration set before adversarial training.
@@ -646,16 +649,18 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     each episode's own code, fitted with the policy (:func:`clone_with_continuous_codes`); the
     posterior then learns those codes."""
     if cfg.code_kind == "continuous" and num_codes:
-        return _continuous_warm_start(m, expert, expert_prev, cfg, gen, guard, episode_codes)
-    stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes, mixture, cfg, gen, guard)
+        return _continuous_warm_start(m, expert, expert_prev, cfg=cfg, gen=gen, guard=guard,
+                                      episode_codes=episode_codes)
+    stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes=num_codes, mixture=mixture, cfg=cfg, gen=gen,
+                                 guard=guard)
     if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = most_likely_codes(m.policy, expert, expert_prev)
         stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
-        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
+        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes=codes, cfg=cfg, gen=gen, guard=guard))
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
-def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: torch.Tensor, codes: torch.Tensor,
+def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, codes: torch.Tensor,
                          cfg: AdversarialConfig, gen: torch.Generator,
                          guard: DivergenceGuard | None = None) -> dict[str, float]:
     """``posterior_init_iterations`` steps of the posterior on the demonstrations, each episode
@@ -670,8 +675,9 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
             idx = torch.randint(len(codes), (min(cfg.warm_start_batch, len(codes)),), generator=gen).to(codes.device)
             targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
             with precision_context(cfg.precision, starts.device):
-                loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx], expert.actions[:, idx],
-                                   starts[:, idx], expert.mask[:, idx], targets)
+                loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx],
+                                   actions=expert.actions[:, idx], starts=starts[:, idx], mask=expert.mask[:, idx],
+                                   targets=targets)
             if guard is not None:
                 guard.value("warm start of the posterior", "warm-start posterior loss", s["posterior/loss"])
             post_opt.zero_grad(set_to_none=True)
@@ -682,15 +688,16 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
     return s
 
 
-def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, cfg: AdversarialConfig,
+def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, cfg: AdversarialConfig,
                            gen: torch.Generator, guard: DivergenceGuard | None,
                            episode_codes: EpisodeCodes | None) -> dict[str, float]:
     """:func:`bc_warm_start` for continuous codes."""
-    stats = clone_with_continuous_codes(m.policy, expert, expert_prev, cfg, gen, guard, episode_codes)
+    stats = clone_with_continuous_codes(m.policy, expert, expert_prev, cfg=cfg, gen=gen, guard=guard,
+                                        episode_codes=episode_codes)
     if episode_codes is not None and m.posterior is not None and cfg.posterior_init_iterations > 0:
         codes = episode_codes.codes.detach()
         stats["bc/code_spread"] = codes.std(0).mean().item()
-        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes, cfg, gen, guard))
+        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes=codes, cfg=cfg, gen=gen, guard=guard))
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
@@ -703,7 +710,7 @@ def update_critic(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, 
         expert = run.sampler.expert(run.expert, e_act, e_prev, cfg.critic_batch, run.gen)
         with run.precision():
             loss, s = critic_loss(m.critic, expert, run.sampler.policy(roll, cfg.critic_batch, run.gen),
-                                  run.objective, cfg.gradient_penalty)
+                                  objective=run.objective, gp_weight=cfg.gradient_penalty)
         run.check(it, "critic loss", s["critic/loss"])
         run.step(it, "critic", loss, m.critic.parameters)
         if cfg.weight_clip > 0 and run.objective == "wasserstein":
@@ -727,22 +734,24 @@ def update_posterior(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor,
     return s
 
 
-def with_rewards(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor, next_values: torch.Tensor,
+def with_rewards(run: AdversarialRun, roll: Rollout, code_idx: torch.Tensor, *, next_values: torch.Tensor,
                  it: int = 0) -> tuple[Rollout, dict[str, float]]:
     """The rollout with the imitation rewards (:func:`rewards`), GAE advantages and returns."""
     with run.precision():
-        r, s = rewards(run.m, roll, code_idx, run.cfg, run.objective)
+        r, s = rewards(run.m, roll, code_idx, cfg=run.cfg, objective=run.objective)
     run.check(it, "reward", r)
     cfg, terminated = run.cfg, roll.terminated
     if cfg.termination == "absorbing" and bool(terminated.any()):
-        next_values, s["reward/absorbing_value"] = absorbing_bootstrap(r, roll.mask, terminated, next_values, cfg.gamma)
+        next_values, s["reward/absorbing_value"] = absorbing_bootstrap(r, roll.mask, terminated,
+                                                                       next_values=next_values, gamma=cfg.gamma)
         terminated = torch.zeros_like(terminated)  # bootstrapped from the absorbing state's value, like a truncation
     ended = roll.terminated | roll.truncated
-    adv, ret = gae(r, roll.values, next_values, terminated, ended, cfg.gamma, cfg.gae_lambda)
+    adv, ret = gae(r, roll.values, next_values, terminated=terminated, truncated=ended, gamma=cfg.gamma,
+                   lam=cfg.gae_lambda)
     return roll.with_(rewards=r, advantages=adv, returns=ret), s
 
 
-def absorbing_bootstrap(r: torch.Tensor, mask: torch.Tensor, terminated: torch.Tensor, next_values: torch.Tensor,
+def absorbing_bootstrap(r: torch.Tensor, mask: torch.Tensor, terminated: torch.Tensor, *, next_values: torch.Tensor,
                         gamma: float) -> tuple[torch.Tensor, float]:
     """``next_values`` with each terminated step's replaced by the value of an absorbing state.
 
@@ -789,8 +798,9 @@ def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
     )
     if cfg.bc_weight > 0:
         resp = run.assignment.update(m.policy)[:, demo_idx] if run.assignment is not None else None
-        bc, bc_stats = demo_nll(m.policy, demo_feats, demo, run.gen, run.num_codes, run.mixture, resp,
-                                run.demo_codes(demo_idx))
+        bc, bc_stats = demo_nll(m.policy, demo_feats, demo, generator=run.gen, num_codes=run.num_codes,
+                                mixture=run.mixture, responsibilities=resp,
+                                codes=run.demo_codes(demo_idx))
         loss = loss + cfg.bc_weight * bc
         s["ppo/bc_nll"] = bc_stats["bc/nll"]
     run.check(it, "policy loss (PPO)", s["ppo/policy_loss"])
@@ -830,14 +840,16 @@ KEY_STATS = ("eval/nmi", "eval/spearman", "eval/mean_purity", "env/true_return",
              "critic/wasserstein")
 
 
-def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, it: int) -> dict[str, float]:
+def iteration(run: AdversarialRun, loop: RunLoop, env: Any, *, clock: PhaseClock, it: int) -> dict[str, float]:
     """One iteration's phases: collect, critic, posterior, rewards and policy (the run loop evaluates,
     logs and checkpoints)."""
     cfg, m = run.cfg, run.m
     with clock("rollout"):
-        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, run.num_codes, run.execute,
-                                                           run.gen, loop.device, cfg.rollout_threads, cfg.code_kind,
-                                                           cfg.code_prior)
+        roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes=run.num_codes,
+                                                           execute=run.execute,
+                                                           generator=run.gen, device=loop.device,
+                                                           threads=cfg.rollout_threads, code_kind=cfg.code_kind,
+                                                           code_prior=cfg.code_prior)
         stats = {"env/true_return": env_rewards.sum(0).mean().item()}
         run.check(it, "environment reward", stats["env/true_return"])
         loop.env_steps += roll.num_steps * roll.num_envs  # eval/env_steps counts the whole run, across resumes
@@ -846,7 +858,7 @@ def iteration(run: AdversarialRun, loop: RunLoop, env: Any, clock: PhaseClock, i
     with clock("posterior"):
         stats.update(update_posterior(run, roll, code_idx, it))
     with clock("ppo"):
-        roll, s = with_rewards(run, roll, code_idx, next_values, it)
+        roll, s = with_rewards(run, roll, code_idx, next_values=next_values, it=it)
         stats.update(s)
         stats.update(update_policy(run, roll, it))
     return stats
@@ -922,7 +934,8 @@ def _environment(cfg: AdversarialConfig, device: torch.device):
     env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
     evaluate = make_evaluator(cfg, env_info, demos)
     try:
-        env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device, env_info["observation_mask"], seed=cfg.seed,
+        env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device=device,
+                           observation_mask=env_info["observation_mask"], seed=cfg.seed,
                            sim=cfg.sim)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: {err}") from None
@@ -942,7 +955,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                       auto_num_codes(cfg, demos.padded(loop.device), execute, loop.guard))
         num_codes = choice.trained if choice is not None else resolve_num_codes(cfg, demos)
         gen = loop.seed()  # after the search, which seeds its own fits: the run is that of --num-codes K
-        m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes, loop.device)
+        m, _ = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes=num_codes, device=loop.device)
         expert = demos.padded(loop.device)
         fit_input_scale(m.policy.encoder, expert.observations, expert.mask)
         opt = build_optimizers(cfg, m)
@@ -966,11 +979,12 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                           carried={"env": env, "assignment": run.assignment}):
             return loop.ckpt_path
         # A checkpoint at iteration 0 is that of a warm start alone (--iterations 0): resuming it goes on from there.
-        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes, run.mixture, cfg, gen, run.guard,
-                                    episode_codes)
+        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes=num_codes, mixture=run.mixture, cfg=cfg,
+                                    gen=gen, guard=run.guard,
+                                    episode_codes=episode_codes)
                       if loop.iteration == 0 and not resume and cfg.warm_start_iterations > 0 else {})
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
-        return loop.run(lambda it: iteration(run, loop, env, clock, it), desc=cfg.learner, key_stats=KEY_STATS,
+        return loop.run(lambda it: iteration(run, loop, env, clock=clock, it=it), desc=cfg.learner, key_stats=KEY_STATS,
                         first_row={**(choice.stats() if choice else {}), **init_stats}, evaluate=evaluate,
                         eval_every=cfg.eval_every,
                         log_extras=lambda: {"policy/log_std": m.policy.log_std.mean().item(), **clock.shares()})
@@ -999,12 +1013,13 @@ def auto_num_codes(cfg: AdversarialConfig, expert: PaddedEpisodes, execute: Call
         policy = GaussianPolicy(policy_arch(cfg, expert.observations.shape[-1], expert.actions.shape[-1], k))
         policy = policy.to(expert.mask.device)
         fit_input_scale(policy.encoder, train.observations, train.mask)
-        clone_demonstrations(policy, train, train_prev, k, True, search_cfg, gen, guard, f"num_codes auto, K {k}: ")
+        clone_demonstrations(policy, train, train_prev, num_codes=k, mixture=True, cfg=search_cfg, gen=gen,
+                             guard=guard, where=f"num_codes auto, K {k}: ")
         return policy
 
     try:
-        return search_num_codes(fit, expert, shift_actions(expert.actions), cfg.num_codes_max, cfg.seed,
-                                cfg.num_codes_tolerance, cfg.num_codes_min_gain)
+        return search_num_codes(fit, expert, shift_actions(expert.actions), max_codes=cfg.num_codes_max, seed=cfg.seed,
+                                tolerance=cfg.num_codes_tolerance, min_gain=cfg.num_codes_min_gain)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: num_codes auto: {err}") from None
 

@@ -99,7 +99,8 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
         prev_all = shift_actions(executed_actions_fn(env_id, env_kwargs)(data.actions))
 
         def update(iteration: int) -> dict[str, float]:
-            stats = bc_step(policy, optimizer, data, prev_all, config.batch_episodes, generator)
+            stats = bc_step(policy, optimizer, data, prev_actions=prev_all, batch_episodes=config.batch_episodes,
+                            generator=generator)
             loop.guard.value(iteration, "bc loss (negative log-likelihood)", stats["bc/nll"])
             loop.guard.grads(iteration, "policy", policy.parameters())  # the step's gradients are still on them
             return stats

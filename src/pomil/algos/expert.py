@@ -108,7 +108,8 @@ def _environment(cfg: ExpertConfig, device: torch.device):
     """(batched env, constructor keywords, observation indices or None) of a run."""
     try:
         env_kwargs, mask = cfg.env_settings()
-        env = make_vec_env(cfg.env_id, env_kwargs, cfg.num_envs, device, mask, seed=cfg.seed, sim=cfg.sim)
+        env = make_vec_env(cfg.env_id, env_kwargs, cfg.num_envs, device=device, observation_mask=mask, seed=cfg.seed,
+                           sim=cfg.sim)
         return env, env_kwargs, mask
     except PomilError:
         raise
@@ -116,7 +117,7 @@ def _environment(cfg: ExpertConfig, device: torch.device):
         raise PomilError(f"experts: cannot build {cfg.env_id!r} ({str(err).splitlines()[0][:200]})") from None
 
 
-def ppo_update(cfg: ExpertConfig, policy: GaussianPolicy, value: torch.nn.Module, opt: torch.optim.Optimizer,
+def ppo_update(cfg: ExpertConfig, policy: GaussianPolicy, value: torch.nn.Module, *, opt: torch.optim.Optimizer,
                roll: Rollout, gen: torch.Generator, guard: DivergenceGuard, it: int) -> dict[str, float]:
     """``ppo_epochs`` passes of shuffled single-step minibatches through the clipped PPO loss."""
     stats: dict[str, float] = {}
@@ -151,7 +152,8 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
         gen = loop.seed()
         arch = PolicyArch(raw_env.obs_dim, raw_env.act_dim, "mlp", cfg.hidden_size, 0, cfg.log_std_init)
         policy = GaussianPolicy(arch).to(loop.device)
-        value = heads.value(raw_env.obs_dim, raw_env.act_dim, 0, "mlp", cfg.hidden_size).to(loop.device)
+        value = heads.value(raw_env.obs_dim, raw_env.act_dim, 0, encoder="mlp",
+                            hidden_size=cfg.hidden_size).to(loop.device)
         opt = torch.optim.Adam(list(policy.parameters()) + list(value.parameters()), lr=cfg.lr, eps=1e-5)
         nets = {"policy": policy, "value": value, "obs_norm": obs_norm, "reward_norm": reward_norm}
         if not loop.start(env={"id": cfg.env_id, "kwargs": env_kwargs, "observation_mask": mask}, nets=nets,
@@ -162,15 +164,18 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
         def update(it: int) -> dict[str, float]:
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * (1.0 - (it - 1) / cfg.iterations)
-            roll, next_values, _, raw_rewards = collect(env, policy, value, 0, execute, gen, loop.device,
-                                                        cfg.rollout_threads)
+            roll, next_values, _, raw_rewards = collect(env, policy, value, num_codes=0, execute=execute,
+                                                        generator=gen, device=loop.device,
+                                                        threads=cfg.rollout_threads)
             loop.env_steps += int(roll.mask.sum())
             reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
             loop.guard.value(it, "environment reward", raw_rewards)
             r = raw_rewards / torch.sqrt(reward_norm.var.float() + 1e-8)  # divided by the running std of the return
-            adv, ret = gae(r, roll.values, next_values, roll.terminated, roll.truncated, cfg.gamma, cfg.gae_lambda)
-            stats = ppo_update(cfg, policy, value, opt, roll.with_(rewards=r, advantages=adv, returns=ret), gen,
-                               loop.guard, it)
+            adv, ret = gae(r, roll.values, next_values, terminated=roll.terminated, truncated=roll.truncated,
+                           gamma=cfg.gamma, lam=cfg.gae_lambda)
+            stats = ppo_update(cfg, policy, value, opt=opt, roll=roll.with_(rewards=r, advantages=adv, returns=ret),
+                               gen=gen,
+                               guard=loop.guard, it=it)
             return {**stats, "env/return": raw_rewards.sum(0).mean().item(), "env/steps": float(loop.env_steps)}
 
         loop.run(update, desc=f"expert {cfg.env_id} {cfg.task}", key_stats=("env/return", "ppo/approx_kl"),

@@ -198,7 +198,7 @@ class NumCodesChoice:
 
 
 def search_num_codes(fit: Callable[[int, PaddedEpisodes, torch.Tensor], GaussianPolicy], data: PaddedEpisodes,
-                     prev_actions: torch.Tensor, max_codes: int, seed: int, tolerance: float,
+                     prev_actions: torch.Tensor, *, max_codes: int, seed: int, tolerance: float,
                      min_gain: float) -> NumCodesChoice:
     """Fit ``fit(K, training episodes, their previous actions) -> policy`` for K = 1..``max_codes``
     (fewer when the training split has fewer episodes), score each on the held-out episodes

@@ -88,7 +88,7 @@ DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "warm_start_lr": 1e-2, "wa
 steps, then decaying to 0 (the default's schedule, with the fast warm start's log std: 10x and fitted)."""
 
 
-def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, mask: torch.Tensor,
+def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, *, mask: torch.Tensor,
             prev_actions: torch.Tensor | None = None,
             codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Masked mean negative log-likelihood over a (T, B) block of whole episodes.
@@ -190,7 +190,7 @@ def _code_log_likelihoods(dist_every_code, data: PaddedEpisodes) -> torch.Tensor
     return (dist_every_code.log_prob(data.actions.unsqueeze(0)).sum(-1) * m).sum(1)
 
 
-def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisodes, generator: torch.Generator,
+def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisodes, *, generator: torch.Generator,
              num_codes: int = 0, mixture: bool = False, responsibilities: torch.Tensor | None = None,
              codes: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Behaviour-cloning loss of a batch of whole demonstration episodes from the policy's encoder
@@ -210,7 +210,7 @@ def demo_nll(policy: GaussianPolicy, features: torch.Tensor, batch: PaddedEpisod
     return _nll(policy, policy.dist(features, codes), batch.actions, batch.mask)
 
 
-def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, batch_episodes: int,
+def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, *, batch_episodes: int,
                  generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
                  assignment: MixtureAssignment | None = None,
                  codes_of: Callable[[torch.Tensor], torch.Tensor] | None = None,
@@ -221,17 +221,20 @@ def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: tor
     episode's own, :class:`EpisodeCodes`, whose batch rows then learn too; or random ones)."""
     batch, prev, idx = demo_batch(data, prev_actions, batch_episodes, generator)
     resp = assignment.update(policy)[:, idx] if mixture and assignment is not None else None
-    return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator, num_codes,
-                    mixture, resp, codes_of(idx) if codes_of is not None else None)
+    return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator=generator,
+                    num_codes=num_codes,
+                    mixture=mixture, responsibilities=resp, codes=codes_of(idx) if codes_of is not None else None)
 
 
-def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, prev_actions: torch.Tensor,
+def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, *,
+            prev_actions: torch.Tensor,
             batch_episodes: int, generator: torch.Generator, num_codes: int = 0, mixture: bool = False,
             assignment: MixtureAssignment | None = None,
             codes_of: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict[str, float]:
     """One update of :func:`demo_bc_loss`."""
-    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes, generator, num_codes, mixture, assignment,
-                               codes_of)
+    loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes=batch_episodes, generator=generator,
+                               num_codes=num_codes, mixture=mixture, assignment=assignment,
+                               codes_of=codes_of)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -265,7 +268,7 @@ def _mixture_nll(policy: GaussianPolicy, dist_every_code, data: PaddedEpisodes,
 
 @torch.no_grad()
 def fit_log_std(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor,
-                mixture: bool = False, codes: torch.Tensor | None = None) -> dict[str, float]:
+                *, mixture: bool = False, codes: torch.Tensor | None = None) -> dict[str, float]:
     """Set the policy's state-independent log std to its maximum-likelihood value given its
     means on all demonstration steps: log std_d = 0.5 log mean_t (a_td - mu_td)^2.  With
     ``mixture``, each code's squared errors count with its balanced responsibility for the
@@ -369,7 +372,7 @@ CODE_SPREAD_EVERY = 10
 
 
 def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor,
-                                cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
+                                *, cfg: AdversarialConfig, gen: torch.Generator, guard: DivergenceGuard | None = None,
                                 episode_codes: EpisodeCodes | None = None) -> dict[str, float]:
     """The warm start's behaviour cloning with continuous codes: each episode under a random code
     from the prior (InfoGAIL), or under its own code in ``episode_codes``, fitted with the policy
@@ -385,7 +388,8 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
     with progress_bar(cfg.warm_start_iterations, "warm start", cfg.progress) as bar:
         for step in range(1, cfg.warm_start_iterations + 1):
             with precision_context(cfg.precision, expert.mask.device):
-                stats = bc_step(policy, opt, expert, expert_prev, cfg.warm_start_batch, gen, codes_of=codes_of)
+                stats = bc_step(policy, opt, expert, prev_actions=expert_prev, batch_episodes=cfg.warm_start_batch,
+                                generator=gen, codes_of=codes_of)
             decay.step()
             if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.warm_start_iterations):
                 episode_codes.spread_()
@@ -399,7 +403,7 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
     return stats
 
 
-def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, num_codes: int,
+def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, num_codes: int,
                          mixture: bool, cfg: AdversarialConfig, gen: torch.Generator,
                          guard: DivergenceGuard | None = None, where: str = "") -> dict[str, float]:
     """The policy's part of :func:`bc_warm_start`: ``warm_start_iterations`` behaviour-cloning steps
@@ -411,14 +415,15 @@ def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_
     with progress_bar(cfg.warm_start_iterations, f"{where}warm start", cfg.progress) as bar:
         for step in range(1, cfg.warm_start_iterations + 1):
             with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
-                stats = bc_step(policy, opt, expert, expert_prev, cfg.warm_start_batch, gen, num_codes, mixture,
-                                assignment)
+                stats = bc_step(policy, opt, expert, prev_actions=expert_prev, batch_episodes=cfg.warm_start_batch,
+                                generator=gen, num_codes=num_codes, mixture=mixture,
+                                assignment=assignment)
             decay.step()
             check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
             bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
             bar.update()
     if cfg.warm_start_fit_log_std:
-        stats.update(fit_log_std(policy, expert, expert_prev, mixture))
+        stats.update(fit_log_std(policy, expert, expert_prev, mixture=mixture))
     return stats
 
 

@@ -61,7 +61,7 @@ class EnvFamily:
 
 
 # ------------------------------------------------------------------- circles
-def _circles_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=None, seed=None):
+def _circles_make(env_id, env_kwargs, num_envs, *, device="cpu", observation_mask=None, seed=None):
     from pomil.envs.circles import CirclesSpec, CirclesVecEnv
 
     if observation_mask is not None:
@@ -99,14 +99,14 @@ def _gym_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
         env.close()
 
 
-def _hopper_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=None, seed=None):
+def _hopper_make(env_id, env_kwargs, num_envs, *, device="cpu", observation_mask=None, seed=None):
     from pomil.envs.locomotion import HopperSim
     from pomil.envs.vec import TorchVecEnv
 
     return TorchVecEnv(HopperSim(num_envs, env_kwargs, env_id=env_id), observation_mask, device, seed)
 
 
-def _gym_make(env_id, env_kwargs, num_envs, device="cpu", observation_mask=None, seed=None):
+def _gym_make(env_id, env_kwargs, num_envs, *, device="cpu", observation_mask=None, seed=None):
     from pomil.envs.batch import GymSim
     from pomil.envs.vec import TorchVecEnv
 
@@ -179,7 +179,7 @@ SIM_HELP = ("physics of the training rollouts: cpu (MuJoCo on the CPU cores) or 
 """The ``sim`` option's help, shared by every config that collects rollouts."""
 
 
-def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
+def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, *, device: Any = "cpu",
                  observation_mask: Sequence[int] | None = None, seed: int | None = None,
                  sim: str = "cpu") -> BatchedEnv:
     """The batched (torch) environment training uses for ``env_id``.
@@ -195,10 +195,12 @@ def make_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device:
     if sim == "warp":
         from pomil.envs.warp import make_warp_vec_env
 
-        return make_warp_vec_env(env_id, env_kwargs, num_envs, device, observation_mask, seed)
+        return make_warp_vec_env(env_id, env_kwargs, num_envs, device=device, observation_mask=observation_mask,
+                                 seed=seed)
     if sim != "cpu":
         raise ValueError(f"unknown sim {sim!r}; expected one of {list(SIMS)}")
-    return env_family(env_id).make(env_id, env_kwargs, num_envs, device, observation_mask, seed)
+    return env_family(env_id).make(env_id, env_kwargs, num_envs, device=device, observation_mask=observation_mask,
+                                   seed=seed)
 
 
 def executed_actions_fn(env_id: str, env_kwargs: dict[str, Any]) -> Executor:

@@ -376,7 +376,8 @@ def fit_circles(positions: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.nd
 
 
 def make_spec(
-    modes: Literal["one", "two", "four"] | str = "two", radius: float = 5.0, episode_length: int = 33, history: int = 1,
+    modes: Literal["one", "two", "four"] | str = "two", radius: float = 5.0, episode_length: int = 33, *,
+              history: int = 1,
     action_type: Literal["vector", "angle"] = "vector",
 ) -> CirclesSpec:
     return CirclesSpec(circles_preset(modes, radius), episode_length, history, action_type)

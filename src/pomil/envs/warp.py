@@ -335,7 +335,7 @@ class WarpVecEnv(SimState):
         self.sim.close()
 
 
-def make_warp_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, device: Any = "cpu",
+def make_warp_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, *, device: Any = "cpu",
                       observation_mask: list[int] | None = None, seed: int | None = None) -> WarpVecEnv:
     """``pomil.envs.make_vec_env(..., sim="warp")``: the task's worlds on the torch ``device``."""
     mask = None if observation_mask is None else [int(i) for i in observation_mask]

@@ -22,7 +22,7 @@ def circles_spec_of(policy: TrainedPolicy) -> CirclesSpec:
 
 @torch.no_grad()
 def rollout_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0,
-                    deterministic: bool = False, codes: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                    *, deterministic: bool = False, codes: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """positions (E, T, 2) visited after each step, codes (E,), returns (E,).  ``codes``: the
     episodes' codes (E,) or continuous (E, d) (default: each discrete code ``episodes_per_code`` times)."""
     spec = circles_spec_of(policy)
@@ -47,12 +47,12 @@ def rollout_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: i
 
 
 def evaluate_circles(
-    policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0, deterministic: bool = False,
+    policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0, *, deterministic: bool = False,
     threshold: float = DEFAULT_NONE_THRESHOLD,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Mode metrics of the policy's rollouts (and the rollouts themselves)."""
     spec = circles_spec_of(policy)
-    roll = rollout_circles(policy, episodes_per_code, seed, deterministic)
+    roll = rollout_circles(policy, episodes_per_code, seed, deterministic=deterministic)
     modes = classify_modes(roll["positions"], spec, threshold)
     roll["modes"] = modes
     metrics = mode_metrics(roll["codes"], modes, max(policy.num_codes, 1), spec.num_modes)
@@ -64,7 +64,7 @@ def evaluate_circles(
     return metrics, roll
 
 
-def evaluate_code_radius(policy: TrainedPolicy, values: int = 9, episodes_per_value: int = 20, seed: int = 0,
+def evaluate_code_radius(policy: TrainedPolicy, values: int = 9, episodes_per_value: int = 20, *, seed: int = 0,
                          deterministic: bool = False) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """How a continuous code maps to the radius of the circle the policy draws.
 

@@ -13,7 +13,7 @@ from pomil.envs.locomotion import HOPPER_ID
 COLOURS = ["tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive"]
 
 
-def _panel(ax, positions: np.ndarray, groups: np.ndarray, title: str, group_name: str, max_per_group: int) -> None:
+def _panel(ax, positions: np.ndarray, groups: np.ndarray, *, title: str, group_name: str, max_per_group: int) -> None:
     for g in np.unique(groups):
         sel = np.flatnonzero(groups == g)[:max_per_group]
         colour = COLOURS[int(g) % len(COLOURS)]
@@ -40,7 +40,7 @@ def figure1(
 
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.8), squeeze=False)
     for ax, (title, pos, groups, name) in zip(axes[0], panels, strict=True):
-        _panel(ax, np.asarray(pos), np.asarray(groups), title, name, max_per_group)
+        _panel(ax, np.asarray(pos), np.asarray(groups), title=title, group_name=name, max_per_group=max_per_group)
     fig.tight_layout()
     suffix = Path(path).suffix.lstrip(".") or "png"
     atomic_write(Path(path), lambda f: fig.savefig(f, format=suffix, dpi=120))

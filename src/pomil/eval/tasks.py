@@ -37,14 +37,15 @@ from pomil.errors import PomilError
 
 
 @torch.no_grad()
-def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episodes: int, seed: int = 0,
+def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episodes: int, *, seed: int = 0,
                        deterministic: bool = True, codes: np.ndarray | None = None,
                        observation_mask: list[int] | None = None, env_id: str | None = None) -> dict[str, np.ndarray]:
     """One episode in each of ``episodes`` copies of the policy's environment
     (or ``env_id``) built with ``env_kwargs``; per episode: ``returns``,
     ``displacement`` (final minus initial torso x; NaN off MuJoCo), ``length``
     (steps) and ``speed`` (displacement / duration, m/s; NaN off MuJoCo)."""
-    env = make_vec_env(env_id or policy.env["id"], env_kwargs, episodes, "cpu", observation_mask, seed=seed)
+    env = make_vec_env(env_id or policy.env["id"], env_kwargs, episodes, device="cpu",
+                       observation_mask=observation_mask, seed=seed)
 
     def x_position() -> np.ndarray:
         try:
@@ -127,7 +128,7 @@ def reference_of(metadata: dict[str, Any], source: str = "demonstrations") -> di
             **({"expert_speed": speeds} if set(speeds) == set(metadata["tasks"]) else {})}
 
 
-def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_per_code: int = 20, seed: int = 0,
+def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_per_code: int = 20, *, seed: int = 0,
                    deterministic: bool = True) -> dict[str, Any]:
     """Roll every code out on every task; per-task figures of the matched code."""
     tasks = list(reference["tasks"])
@@ -138,8 +139,9 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
     progress = np.zeros((k, len(tasks)))
     speeds = []
     for j, task in enumerate(tasks):
-        roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed, deterministic, codes,
-                                  mask)
+        roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed=seed,
+                                  deterministic=deterministic, codes=codes,
+                                  observation_mask=mask)
         speeds.append(roll["speed"])
         for c in range(k):
             sel = codes == c

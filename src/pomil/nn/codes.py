@@ -62,7 +62,7 @@ def spread_as_prior(codes: torch.Tensor, prior: str) -> torch.Tensor:
     return prior_quantile(prior, (ranks + 0.5) / e)
 
 
-def draw_codes(kind: str, prior: str, n: int, width: int,
+def draw_codes(kind: str, prior: str, n: int, *, width: int,
                generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """n episodes' codes from the prior, as (codes, vectors): discrete, the indices (n,) uniform
     over the K = ``width`` codes and their one-hot vectors (n, K) (no codes when ``width`` is 0:

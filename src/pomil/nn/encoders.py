@@ -287,12 +287,12 @@ def fit_input_scale(encoder: nn.Module, observations: torch.Tensor, mask: torch.
     encoder.delta_scale.copy_(1.0 / std.clamp_min(1e-6))
 
 
-def make_encoder(kind: str, obs_dim: int, act_dim: int, hidden_size: int, context: int = 32,
+def make_encoder(kind: str, obs_dim: int, act_dim: int, *, hidden_size: int, context: int = 32,
                  obs_delta: bool = False, prev_action: bool = True) -> nn.Module:
     """The encoder called ``kind`` (one of :data:`ENCODERS`); ``context`` is the attention encoder's window;
     ``obs_delta`` / ``prev_action = False``: seen through an :class:`InputView` (else the encoder itself)."""
     if obs_delta or not prev_action:
-        inner = make_encoder(kind, obs_dim * (2 if obs_delta else 1), act_dim, hidden_size, context)
+        inner = make_encoder(kind, obs_dim * (2 if obs_delta else 1), act_dim, hidden_size=hidden_size, context=context)
         return InputView(inner, obs_dim, obs_delta, prev_action)
     if kind == "mlp":
         return MLPEncoder(obs_dim, act_dim, hidden_size)

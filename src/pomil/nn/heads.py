@@ -20,7 +20,7 @@ class BeliefHead(nn.Module):
     def __init__(self, obs_dim: int, act_dim: int, extra_dim: int, out_dim: int, encoder: str = "gru",
                  hidden_size: int = 128, context: int = 32) -> None:
         super().__init__()
-        self.encoder = make_encoder(encoder, obs_dim, act_dim, hidden_size, context)
+        self.encoder = make_encoder(encoder, obs_dim, act_dim, hidden_size=hidden_size, context=context)
         self.out_dim = out_dim
         self.mlp = nn.Sequential(
             nn.Linear(self.encoder.out_size + extra_dim, hidden_size), nn.ELU(), nn.Linear(hidden_size, out_dim)
@@ -44,13 +44,13 @@ class BeliefHead(nn.Module):
         return self._out(feats, extra), h
 
 
-def critic(obs_dim: int, act_dim: int, encoder: str = "gru", hidden_size: int = 128,
+def critic(obs_dim: int, act_dim: int, encoder: str = "gru", *, hidden_size: int = 128,
            context: int = 32) -> BeliefHead:
     """Scores f(b(tau; omega), a_t): higher = more expert-like."""
     return BeliefHead(obs_dim, act_dim, act_dim, 1, encoder, hidden_size, context)
 
 
-def posterior(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128,
+def posterior(obs_dim: int, act_dim: int, num_codes: int, *, encoder: str = "gru", hidden_size: int = 128,
               context: int = 32, code_kind: str = "discrete") -> BeliefHead:
     """P(c | b(tau; psi), a_t): K logits, or for a continuous code of ``num_codes`` = d dimensions
     a diagonal Gaussian's mean and log std (2d outputs; ``pomil.nn.codes.code_log_likelihood``)."""
@@ -58,7 +58,7 @@ def posterior(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", 
     return BeliefHead(obs_dim, act_dim, act_dim, out, encoder, hidden_size, context)
 
 
-def value(obs_dim: int, act_dim: int, num_codes: int, encoder: str = "gru", hidden_size: int = 128,
+def value(obs_dim: int, act_dim: int, num_codes: int, *, encoder: str = "gru", hidden_size: int = 128,
           context: int = 32) -> BeliefHead:
     """V(b(tau), c)."""
     return BeliefHead(obs_dim, act_dim, num_codes, 1, encoder, hidden_size, context)

@@ -42,7 +42,7 @@ class Collected(NamedTuple):
 
 
 @torch.no_grad()
-def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int,
+def collect(env, policy: GaussianPolicy, value: BeliefHead, *, num_codes: int,
             execute: Callable[[torch.Tensor], torch.Tensor],
             generator: torch.Generator, device: torch.device, threads: int = 1, code_kind: str = "discrete",
             code_prior: str = "uniform") -> Collected:
@@ -58,7 +58,7 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, num_codes: int,
     value network over the whole rollout."""
     n = env.num_envs
     obs = env.reset()
-    code_idx, codes = draw_codes(code_kind, code_prior, n, num_codes, generator)
+    code_idx, codes = draw_codes(code_kind, code_prior, n, width=num_codes, generator=generator)
     code_idx, codes = code_idx.to(device), codes.to(device)
     h_pi, h0_v = policy.initial_state(n, device), value.initial_state(n, device)
     h0_pi = h_pi.clone()

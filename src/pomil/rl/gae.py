@@ -13,7 +13,7 @@ import torch
 
 def gae(
     rewards: torch.Tensor, values: torch.Tensor, next_values: torch.Tensor,
-    terminated: torch.Tensor, truncated: torch.Tensor, gamma: float = 0.99, lam: float = 0.95,
+    *, terminated: torch.Tensor, truncated: torch.Tensor, gamma: float = 0.99, lam: float = 0.95,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """All inputs (T, N); ``next_values[t]`` = V(s_{t+1}) (the final observation's value
     where step t ended an episode).  Returns (advantages, returns), both (T, N)."""

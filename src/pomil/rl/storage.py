@@ -19,7 +19,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 
-def window_index(num_steps: int, num_seqs: int, length: int, count: int,
+def window_index(num_steps: int, num_seqs: int, length: int, *, count: int,
                  generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices of ``count`` random windows: time (length, count) and sequence (count,)."""
     length = min(length, num_steps)
@@ -94,7 +94,7 @@ class Rollout:
 
     def windows(self, length: int, count: int, generator: torch.Generator) -> Rollout:
         """``count`` random windows of ``length`` steps, hidden state zeroed at their start."""
-        t_idx, env = window_index(self.num_steps, self.num_envs, length, count, generator)
+        t_idx, env = window_index(self.num_steps, self.num_envs, length, count=count, generator=generator)
         dev = self.starts.device
         return self._gather(t_idx.to(dev), env.to(dev), self.h0_policy[env.to(dev)] * 0, self.h0_value[env.to(dev)] * 0,
                             zero_first=True)
