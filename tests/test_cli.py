@@ -10,11 +10,7 @@ import torch
 from pomil.api import TrainedPolicy
 from pomil.cli import build_parser, main
 from pomil.training import load_checkpoint
-
-
-def pomil(*args):
-    return subprocess.run([sys.executable, "-m", "pomil.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=300)
+from tests.inprocess import pomil
 
 
 def test_cli_smoke_demos_train_evaluate_plot(tmp_path):
@@ -59,8 +55,7 @@ def test_config_file_sets_options_and_unknown_keys_list_the_valid_ones(tmp_path,
     (["evaluate", "nope.pt"], "no such checkpoint"),
 ])
 def test_bad_options_are_one_line_errors(args, text, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", *args], capture_output=True, text=True, cwd=tmp_path,
-                       timeout=120)
+    r = pomil(*args, cwd=tmp_path)  # a subprocess of its own: tests/test_config.py
     assert r.returncode == 2 and text in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
@@ -141,8 +136,7 @@ record = "circles --modes one --radius-range 3,7 --episodes 20"
 code_values = 3
 episodes_per_value = 2
 """)
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", "reproduce", "spec.toml", "--no-progress", "--jobs", "1"],
-                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    r = pomil("reproduce", "spec.toml", "--no-progress", "--jobs", "1", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     out = tmp_path / "runs" / "results" / "spec"  # the default places
     metrics = json.loads((out / "metrics.json").read_text())
@@ -167,8 +161,7 @@ episodes_per_value = 2
 ])
 def test_a_bad_spec_is_one_line_before_anything_runs(tmp_path, text, message):
     (tmp_path / "bad.toml").write_text(text)
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", "reproduce", "bad.toml"], capture_output=True, text=True,
-                       timeout=120, cwd=tmp_path)
+    r = pomil("reproduce", "bad.toml", cwd=tmp_path)
     assert r.returncode == 2 and message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "bad.toml" in r.stderr or "missing.npz" in r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]

@@ -154,3 +154,41 @@ def test_cli_rejects_demos_whose_sizes_do_not_match_the_env(tmp_path):
     )
     assert proc.returncode == 2, proc.stderr
     assert "field 'observations': expected obs_dim 2" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_demos_per_mode_draws_a_balanced_subset_with_the_seed(demos_path, capsys):
+    from pomil.data import load_training_demos, per_mode
+
+    full = Demonstrations.load(demos_path)
+    a = per_mode(full, 3, seed=5, source="d.npz")
+    assert np.bincount(a.labels).tolist() == [3, 3] and a.num_episodes == 6
+    b = per_mode(full, 3, seed=5, source="d.npz")
+    np.testing.assert_array_equal(a.observations, b.observations)  # the same seed, the same episodes
+    c = per_mode(full, 3, seed=6, source="d.npz")
+    assert not np.array_equal(a.observations, c.observations)
+    first = a.episode(0)[0]  # each kept episode is one of the file's, whole
+    assert any(np.array_equal(first, full.episode(i)[0]) for i in range(full.num_episodes))
+    loaded, _, _ = load_training_demos(str(demos_path), per_mode_episodes=3, seed=5)
+    np.testing.assert_array_equal(loaded.observations, a.observations)
+    with pytest.raises(DataError, match=r"d.npz: field 'labels': expected at least 101 episodes of every mode for "
+                                        r"101 per mode, got \[100, 100\]"):
+        per_mode(full, 101, seed=0, source="d.npz")
+    unlabelled = Demonstrations(full.observations, full.actions, full.episode_bounds, None, full.states,
+                                full.metadata)
+    capsys.readouterr()
+    u = per_mode(unlabelled, 2, seed=0, source="u.npz")  # the circles' metadata name two modes
+    assert u.num_episodes == 4 and "no labels, so the first 4 episodes" in capsys.readouterr().err
+    np.testing.assert_array_equal(u.observations, full.subset(range(4)).observations)
+
+
+def test_demos_per_mode_is_a_training_option_recorded_with_the_run(demos_path, tmp_path):
+    from tests.inprocess import pomil
+
+    r = pomil("train", "bc", "--demos", demos_path, "--demos-per-mode", 2, "--iterations", 2, "--out", tmp_path / "r",
+              "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "r" / "config.json").read_text())["demos_per_mode"] == 2
+    r = pomil("train", "gail", "--demos", demos_path, "--demos-per-mode", 500, "--out", tmp_path / "x",
+              "--no-progress")
+    assert r.returncode == 2 and "expected at least 500 episodes of every mode" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1

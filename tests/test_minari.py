@@ -1,8 +1,6 @@
 """Minari import/export on datasets built here (nothing is downloaded)."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -15,6 +13,7 @@ pytest.importorskip("h5py")
 from pomil.data import Demonstrations  # noqa: E402
 from pomil.errors import PomilError  # noqa: E402
 from pomil.minari_io import export_minari, import_minari  # noqa: E402
+from tests.inprocess import pomil  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -80,25 +79,19 @@ def test_import_a_dataset_recorded_with_minaris_own_collector(tmp_path, monkeypa
     np.testing.assert_array_equal(demos.observations, demos.states[:, :8])
     # the learner trains on it: CLI import, then a tiny InfoGAIL-POMDP run on HalfCheetah
     out = tmp_path / "c.npz"
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", "demos", "import-minari", "test/cheetah-random-v0",
-                        "--out", str(out),
-                        "--minari-root", str(tmp_path), "--observation-mask", "positions-only"], capture_output=True,
-                       text=True)
+    r = pomil("demos", "import-minari", "test/cheetah-random-v0", "--out", out, "--minari-root", tmp_path,
+              "--observation-mask", "positions-only")
     assert r.returncode == 0 and "3 episodes of HalfCheetah-v5" in r.stdout, r.stderr
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", "train", "infogail-pomdp", "--demos", str(out),
-                        "--iterations", "1",
-                        "--num-envs", "2", "--minibatches", "2", "--warm-start-iterations", "1",
-                        "--posterior-init-iterations", "1",
-                        "--out", str(tmp_path / "run"), "--no-progress"],
-                       capture_output=True, text=True)
+    r = pomil("train", "infogail-pomdp", "--demos", out, "--iterations", 1, "--num-envs", 2, "--minibatches", 2,
+              "--warm-start-iterations", 1, "--posterior-init-iterations", 1, "--out", tmp_path / "run",
+              "--no-progress")
     assert r.returncode == 0, r.stderr
     cfg = json.loads((tmp_path / "run" / "config.json").read_text())
     assert cfg["num_codes"] == -1
 
 
 def test_cli_minari_errors_are_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "pomil.cli", "demos", "import-minari", "nope/none-v0", "--out",
-                        str(tmp_path / "x.npz"), "--minari-root", str(tmp_path)], capture_output=True, text=True)
+    r = pomil("demos", "import-minari", "nope/none-v0", "--out", tmp_path / "x.npz", "--minari-root", tmp_path)
     assert r.returncode == 2, r.stderr
     assert "no local Minari dataset 'nope/none-v0'" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.npz").exists()

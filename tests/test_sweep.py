@@ -51,9 +51,11 @@ def test_sweep_on_local_ray_reports_failures_and_skips_finished_runs(tmp_path, d
     ({"learner": "gail", "demos": "x.npz"}, ["--grid", "bogus=1,2"], "unknown key(s) ['bogus']"),
 ])
 def test_sweep_bad_config_is_one_line(tmp_path, content, grid, text):
+    from tests.inprocess import pomil as in_process
+
     config = tmp_path / "c.json"
     config.write_text(json.dumps(content))
-    r = pomil("sweep", config, *grid, cwd=tmp_path)
+    r = in_process("sweep", config, *grid, cwd=tmp_path)
     assert r.returncode == 2 and text in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.json"]
 

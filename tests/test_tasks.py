@@ -1,8 +1,6 @@
 """Any Gymnasium task: the generic batched simulator, task keywords, recording and merging demonstrations."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -21,9 +19,7 @@ from pomil.errors import PomilError
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def pomil(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "pomil.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=300, cwd=cwd)
+from tests.inprocess import pomil  # noqa: E402
 
 
 def test_gym_sim_equals_gymnasium_and_freezes_ended_copies():
@@ -325,3 +321,27 @@ def test_dart_recording_executes_noisy_actions_and_records_the_experts():
     assert "DART" in noisy.metadata["source"] and "DART" not in clean.metadata["source"]
     with pytest.raises(ValueError, match="action_noise"):
         record_expert_demos(path, 1, action_noise=-0.1)
+
+
+def test_the_velocities_view_is_qvel_alone_while_the_experts_see_everything():
+    from pomil.api import TrainedPolicy
+    from pomil.data import load_training_demos
+    from pomil.demos import record_expert_demos
+    from pomil.envs.wrappers import resolve_observation_mask
+
+    qvel = list(range(5, 11))
+    assert resolve_observation_mask("Hopper-v5", {}, "velocities") == qvel
+    env = gym.make("Hopper-v5")
+    obs, _ = env.reset(seed=3)
+    np.testing.assert_array_equal(obs[qvel], env.unwrapped.data.qvel)  # a constructed state: exactly its qvel
+    env.close()
+    path = ROOT / "data" / "hopper-paper.npz"  # full states recorded: the paper's demonstrations re-masked
+    velocities, _, _ = load_training_demos(str(path), {}, "velocities")
+    np.testing.assert_array_equal(velocities.observations, Demonstrations.load(path).states[:, qvel])
+    expert = str(ROOT / "data" / "experts" / "hopper-forward.pt")
+    demos = record_expert_demos(expert, 2, observation_mask="velocities", seed=0)
+    assert demos.obs_dim == 6 and demos.metadata["observation_mask"] == qvel
+    np.testing.assert_array_equal(demos.observations, demos.states[:, qvel])  # the file holds the learner's view
+    policy = TrainedPolicy.load(expert)  # an MLP on the full observation: each recorded action is its own
+    policy.reset(len(demos.states))
+    np.testing.assert_allclose(demos.actions, policy.act(demos.states, deterministic=True), rtol=0, atol=1e-6)

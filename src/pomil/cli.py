@@ -140,7 +140,7 @@ class HopperDemosConfig:
                                      "shipped one, data/experts/hopper[-standard]-forward.pt")
     backward_expert: str = option("", "backward expert checkpoint; default the setting's shipped one")
     observation_mask: str = option("positions-only",
-                                   "what the learner observes: positions-only, or comma-separated indices")
+                                   "what the learner observes: positions-only, velocities, or comma-separated indices")
     seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
     action_noise: float = option(-1.0, "std of Gaussian noise added to the executed actions while the expert's own "
                                        "actions are recorded (DART: demonstrations with recoveries); 0: none; -1: the "
@@ -165,7 +165,8 @@ class RecordDemosConfig:
     task: str = option("",
                        "task name kept as the episodes' label (default: forward/backward from forward_reward_weight)")
     observation_mask: str = option("positions-only",
-                                   "what the learner observes: positions-only, comma-separated indices, or '' (all)")
+                                   "what the learner observes: positions-only, velocities, comma-separated indices, or "
+                                   "'' (all)")
     seed: int = option(0, "random seed (reset noise)", within="[0, 4294967295]")
     action_noise: float = option(0.0, "std of Gaussian noise added to the executed actions while the expert's own "
                                       "actions are recorded (DART: demonstrations with recoveries); 0: none",

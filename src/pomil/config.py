@@ -392,8 +392,11 @@ class RunConfig:
     env_kwargs: tuple[str, ...] = option((), "environment keywords key=value that replace the demonstrations' "
                                              "(training rollouts, evaluation), e.g. max_episode_steps=200")
     observation_mask: str = option("",
-                                   "re-mask the demonstrations' full observations (their states): positions-only or "
-                                       "indices; '' keeps the demonstrations' own view")
+                                   "re-mask the demonstrations' full observations (their states): positions-only, "
+                                   "velocities or indices; '' keeps the demonstrations' own view")
+    demos_per_mode: int = option(0, "train on N demonstration episodes of each mode (0: all), drawn with the run's "
+                                    "seed from each labelled mode; unlabelled demonstrations: the first N x modes "
+                                    "episodes", within="[0, inf)")
     out: str = option("runs/run", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     seed: int = option(0, "random seed (same seed, same run on CPU)", within="[0, 4294967295]")
     log_every: int = option(25, "iterations between log rows", within="[1, inf)")

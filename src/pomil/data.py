@@ -15,8 +15,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import sys
 import tempfile
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -128,6 +130,15 @@ class Demonstrations:
     def episode(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = self.episode_bounds[i], self.episode_bounds[i + 1]
         return self.observations[lo:hi], self.actions[lo:hi]
+
+    def subset(self, episodes: Sequence[int]) -> Demonstrations:
+        """These episodes (indices, in the order given), with their labels and states."""
+        steps = np.concatenate([np.arange(self.episode_bounds[i], self.episode_bounds[i + 1]) for i in episodes])
+        bounds = np.concatenate([[0], np.cumsum(self.episode_lengths[list(episodes)])])
+        pick = lambda a: None if a is None else a[steps]  # noqa: E731
+        labels = None if self.labels is None else self.labels[list(episodes)]
+        return Demonstrations(self.observations[steps], self.actions[steps], bounds, labels, pick(self.states),
+                              dict(self.metadata))
 
     def padded(self, device: torch.device | str = "cpu") -> PaddedEpisodes:
         """All episodes as time-major (T_max, E, ...) tensors with a validity mask."""
@@ -330,16 +341,46 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
     return env_id, kwargs
 
 
+def per_mode(demos: Demonstrations, n: int, seed: int, source: str) -> Demonstrations:
+    """``n`` episodes of each mode: drawn with ``seed`` from each label's episodes (kept in file order), or, without
+    labels, the first ``n`` x modes episodes (modes from the metadata; a note says so).  One-line DataError when a
+    mode has fewer than ``n`` episodes."""
+    if demos.labels is None:
+        from pomil.envs import default_num_codes
+
+        modes = len(demos.metadata.get("label_names") or []) or default_num_codes(demos.metadata)
+        if not modes:
+            raise DataError("labels", "expected labels or a number of modes in the metadata, to take "
+                                      f"{n} episodes per mode", source)
+        if n * modes > demos.num_episodes:
+            raise DataError("episodes", f"expected at least {n} x {modes} episodes for {n} per mode, got "
+                                        f"{demos.num_episodes}", source)
+        print(f"pomil: note: {source}: no labels, so the first {n * modes} episodes ({n} per mode x {modes} modes "
+              "if they are balanced) are the training set", file=sys.stderr)
+        return demos.subset(range(n * modes))
+    counts = np.bincount(demos.labels)
+    if counts[counts > 0].min() < n:
+        raise DataError("labels", f"expected at least {n} episodes of every mode for {n} per mode, got "
+                                  f"{counts[counts > 0].tolist()}", source)
+    rng = np.random.default_rng(seed)
+    chosen = [rng.choice(np.flatnonzero(demos.labels == k), n, replace=False) for k in np.flatnonzero(counts)]
+    return demos.subset(np.sort(np.concatenate(chosen)).tolist())
+
+
 def load_training_demos(path: str, env_kwargs: dict[str, Any] | None = None,
-                        observation_mask: str | list[int] | None = None) -> tuple[Demonstrations, str, dict[str, Any]]:
+                        observation_mask: str | list[int] | None = None, *, per_mode_episodes: int = 0,
+                        seed: int = 0) -> tuple[Demonstrations, str, dict[str, Any]]:
     """Demonstrations for a learner, with the run's overrides applied, checked
     against their environment: (demos, env_id, env_kwargs).
 
     ``env_kwargs`` replace keywords of the demonstrations' environment;
     ``observation_mask`` (a preset or indices into the full observation)
-    re-masks the demonstrations' full observations (``states``).
+    re-masks the demonstrations' full observations (``states``);
+    ``per_mode_episodes`` (0: all) keeps that many episodes of each mode (:func:`per_mode`, drawn with ``seed``).
     """
     demos = Demonstrations.load(path)
+    if per_mode_episodes:
+        demos = per_mode(demos, per_mode_episodes, seed, path)
     if env_kwargs or observation_mask is not None:
         md = dict(demos.metadata)
         if env_kwargs:

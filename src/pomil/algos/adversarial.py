@@ -930,7 +930,8 @@ def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
 def _environment(cfg: AdversarialConfig, device: torch.device):
     """(demonstrations, env info, evaluator, batched env, executed-actions function) of a run."""
     demos, env_id, env_kwargs = load_training_demos(cfg.demos, parse_kwargs(cfg.env_kwargs),
-                                                    parse_mask(cfg.observation_mask))
+                                                    parse_mask(cfg.observation_mask),
+                                                    per_mode_episodes=cfg.demos_per_mode, seed=cfg.seed)
     env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
     evaluate = make_evaluator(cfg, env_info, demos)
     try:

@@ -82,7 +82,8 @@ def train_bc(config: BCConfig, resume: bool = False) -> Path:
     config = sized_for_episodes(resolved(config), Demonstrations.load(config.demos).episode_lengths.max(initial=0))
     with RunLoop(config, algo="bc", resume=resume, hints=hints) as loop:
         demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs),
-                                                        parse_mask(config.observation_mask))
+                                                        parse_mask(config.observation_mask),
+                                                        per_mode_episodes=config.demos_per_mode, seed=config.seed)
         generator = loop.seed()
         arch = PolicyArch(demos.obs_dim, demos.act_dim, config.policy, config.hidden_size, 0, config.log_std_init,
                           context=config.attention_context, obs_delta=config.obs_delta, prev_action=config.prev_action)

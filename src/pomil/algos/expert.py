@@ -45,8 +45,8 @@ class ExpertConfig(PPOOptions, RunConfig):
     env_kwargs: tuple[str, ...] = option((), "more constructor keywords as key=value (JSON values), applied after task "
                                              "and setting, e.g. ctrl_cost_weight=0.05,max_episode_steps=200")
     observation_mask: str = option("",
-                                   "what the expert observes: '' (everything), positions-only, or comma-separated "
-                                   "indices")
+                                   "what the expert observes: '' (everything), positions-only, velocities, or "
+                                   "comma-separated indices")
     out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     iterations: int = option(200,
                              "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",

@@ -11,6 +11,10 @@ Presets:
   of the observation, as its ``observation_structure`` says), drop the
   velocities and everything after them.  On Hopper-v5 that is qpos[1:]:
   height and 4 angles, 5 numbers (the paper's observation).
+* ``velocities`` -- the same tasks: keep the velocities alone (the qvel part),
+  drop the positions and angles.  On Hopper-v5 that is qvel: 6 numbers,
+  from which posture must be integrated over time (pomdp-baselines'
+  Hopper-V, where memory decides).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-PRESETS = ("positions-only",)
+PRESETS = ("positions-only", "velocities")
 
 
 class ObservationMask(gym.ObservationWrapper):
@@ -78,16 +82,16 @@ def resolve_observation_mask(env_id: str, env_kwargs: dict[str, Any],
     try:
         obs_dim = int(env.observation_space.shape[0])
         if isinstance(mask, str):
-            if mask != "positions-only":
+            if mask not in PRESETS:
                 raise ValueError(f"unknown observation mask preset {mask!r}; expected a list of indices or one of "
                                  f"{list(PRESETS)}")
             structure = getattr(env.unwrapped, "observation_structure", None)
-            if not isinstance(structure, dict) or "qpos" not in structure:
-                raise ValueError(f"observation mask 'positions-only' needs a MuJoCo locomotion environment "
+            if not isinstance(structure, dict) or "qpos" not in structure or "qvel" not in structure:
+                raise ValueError(f"observation mask {mask!r} needs a MuJoCo locomotion environment "
                                  f"(with an observation_structure), {env_id!r} has none")
-            # MuJoCo locomotion observations begin with the kept qpos entries.
-            n_pos = int(structure["qpos"])
-            return list(range(n_pos))
+            # MuJoCo locomotion observations begin with the kept qpos entries, then the qvel ones.
+            n_pos, n_vel = int(structure["qpos"]), int(structure["qvel"])
+            return list(range(n_pos)) if mask == "positions-only" else list(range(n_pos, n_pos + n_vel))
         return check_indices(mask, obs_dim).tolist()
     finally:
         env.close()
