@@ -85,8 +85,9 @@ def test_kwargs_and_mask_parsing():
     assert cfg.env_settings() == ({"forward_reward_weight": 1.0, "max_episode_steps": 128, "ctrl_cost_weight": 0.05},
                                   None)
     assert parse_mask("") is None and parse_mask("positions-only") == "positions-only" and parse_mask("0, 2") == [0, 2]
+    assert parse_mask("velocities") == "velocities"
     with pytest.raises(ValueError, match="comma-separated"):
-        parse_mask("velocities")
+        parse_mask("speed")
 
 
 def _demos(label_name, n, env_kwargs, value, env_id="HalfCheetah-v5", mask=None):

@@ -124,8 +124,10 @@ def test_observation_mask_on_another_env():
         ObservationMask(gym.make("Pendulum-v1"), [3])
     with pytest.raises(ValueError, match="MuJoCo locomotion"):
         resolve_observation_mask("Pendulum-v1", {}, "positions-only")
-    with pytest.raises(ValueError, match="unknown observation mask preset"):
+    with pytest.raises(ValueError, match="MuJoCo locomotion"):
         resolve_observation_mask("Pendulum-v1", {}, "velocities")
+    with pytest.raises(ValueError, match="unknown observation mask preset"):
+        resolve_observation_mask("Pendulum-v1", {}, "speed")
 
 
 def test_executed_actions_clamp_to_the_control_range():
