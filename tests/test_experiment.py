@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from pomil.errors import PomilError
-from pomil.experiment import load_spec, results_table, spec_from_dict, spec_names, summarise
+from pomil.experiment import load_spec, results_table, select_rows, spec_from_dict, spec_names, summarise
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,8 +42,8 @@ def test_a_grid_makes_one_row_per_combination_with_its_settings():
     spec = spec_from_dict({"rows": [{"name": "a", "learner": "gail"}, {"name": "b", "learner": "infogail"}],
                            "demos": {"file": "d.npz", "record": "circles --episodes 4"},
                            "grid": {"lr": [1e-4, 2e-4], "mi_weight": [0.0]}}, "g", "g.toml")
-    assert [r.name for r in spec.rows] == ["a,lr=0.0001,mi_weight=0.0", "a,lr=0.0002,mi_weight=0.0",
-                                           "b,lr=0.0001,mi_weight=0.0", "b,lr=0.0002,mi_weight=0.0"]
+    assert [r.name for r in spec.rows] == ["a lr=0.0001 mi_weight=0.0", "a lr=0.0002 mi_weight=0.0",
+                                           "b lr=0.0001 mi_weight=0.0", "b lr=0.0002 mi_weight=0.0"]
     assert spec.rows[1].settings == {"lr": 2e-4, "mi_weight": 0.0} and spec.rows[0].demos.record[-1] == "4"
     with pytest.raises(PomilError, match="grid key 'lr': expected a non-empty list"):
         spec_from_dict({"learners": ["gail"], "demos": {"file": "d.npz"}, "grid": {"lr": 1e-4}}, "g", "g.toml")
@@ -78,3 +78,14 @@ def test_summary_success_counts_and_table_come_from_the_runs():
     assert "| case | modes |" in table
     assert "| x | 2 | 1/2 | 0.75 ± 0.25 | 0.75 ± 0.25 | 1.5 ± 0.5 | 0.60 ± 0.40 | 0.25 ± 0.25 | 20 |" in table
     assert "mean ± std over 2 seed(s) (0, 1); 10 stochastic rollouts per code" in table
+
+
+def test_rows_are_chosen_by_name_and_a_rows_name_chooses_its_grid_rows():
+    spec = load_spec("hopper-few-demos")
+    assert [r.name for r in select_rows(spec, ("igp-warm-start",))] == [
+        f"igp-warm-start demos_per_mode={n}" for n in (1, 4, 11, 25)]
+    assert [r.name for r in select_rows(spec, ("infogail-pomdp demos_per_mode=4",))] == [
+        "infogail-pomdp demos_per_mode=4"]
+    assert len(select_rows(spec, ())) == 8
+    with pytest.raises(PomilError, match=r"--rows: no rows \['igp'\] in .*hopper-few-demos.toml"):
+        select_rows(spec, ("igp",))

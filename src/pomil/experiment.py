@@ -31,7 +31,7 @@ on other seeds.  Spec keys::
     [evaluation]                 episodes_per_code, code_values, episodes_per_value
     [settings.adversarial]       settings of every adversarial row ([settings.bc]: every BC row)
     [[rows]]                     name, learner, settings = {...}, demos = {file, record}
-    [grid]                       key = [v1, v2]: every row once per combination
+    [grid]                       key = [v1, v2]: every row once per combination ("ROW key=v1 ...")
 """
 
 from __future__ import annotations
@@ -257,7 +257,7 @@ def _row(table: Any, demos: DemosSource | None, where: str) -> Row:
 
 
 def expand_grid(rows: list[Row], grid: Any, source: str) -> list[Row]:
-    """Every row once per combination of the grid's values, named ``row,key=value,...``."""
+    """Every row once per combination of the grid's values, named ``row key=value ...``."""
     _known(grid, tuple(grid) if isinstance(grid, dict) else (), f"{source}: [grid]")
     if not grid:
         return rows
@@ -266,7 +266,7 @@ def expand_grid(rows: list[Row], grid: Any, source: str) -> list[Row]:
             raise PomilError(f"{source}: grid key '{key}': expected a non-empty list of values")
     combos = [dict(zip(grid, c, strict=True)) for c in itertools.product(*grid.values())]
     def named(row: Row, c: dict[str, Any]) -> str:
-        return ",".join([row.name] * (len(rows) > 1) + [f"{k}={v}" for k, v in c.items()])
+        return " ".join([row.name] * (len(rows) > 1) + [f"{k}={v}" for k, v in c.items()])
 
     return [dataclasses.replace(row, name=named(row, c), settings={**row.settings, **c})
             for row in rows for c in combos]
@@ -816,7 +816,8 @@ class ReproduceOptions:
     seeds: int = option(0, "training seeds per row (0: the spec's)", within="[0, inf)")
     first_seed: int = option(0, "the first training seed (to add seeds to results; `pomil reproduce merge` joins "
                                 "them)", within="[0, inf)")
-    rows: tuple[str, ...] = option((), "comma-separated rows of the spec to run (default: every row)")
+    rows: tuple[str, ...] = option((), "comma-separated rows of the spec to run (default: every row); a row's name "
+                                       "also selects the grid's rows made from it")
     demos: str = option("", "demonstrations for every row instead of the spec's (recorded the spec's way if missing)")
     episodes_per_code: int = option(0, "evaluation episodes per code (and task); 0: the spec's", within="[0, inf)")
     adversarial_iterations: int = option(0, "iterations of the adversarial rows (0: the spec's)", within="[0, inf)")
@@ -838,13 +839,21 @@ class ReproduceOptions:
         check_fields(self)
 
 
+def select_rows(spec: Spec, names: tuple[str, ...]) -> list[Row]:
+    """The rows named (all when none are): a row, or every grid row made from it ("NAME key=value ...")."""
+    def chosen(row: Row, name: str) -> bool:
+        return row.name == name or row.name.startswith(f"{name} ")
+
+    unknown = [n for n in names if not any(chosen(r, n) for r in spec.rows)]
+    if unknown:
+        raise PomilError(f"--rows: no rows {unknown} in {spec.source}; its rows are {[r.name for r in spec.rows]}")
+    return [r for r in spec.rows if not names or any(chosen(r, n) for n in names)]
+
+
 def reproduce(spec_name: str, opts: ReproduceOptions) -> dict[str, Any]:
     """``pomil reproduce SPEC``: the spec with the options' changes, run."""
     spec = load_spec(spec_name)
-    unknown = sorted(set(opts.rows) - {r.name for r in spec.rows})
-    if unknown:
-        raise PomilError(f"--rows: no rows {unknown} in {spec.source}; its rows are {[r.name for r in spec.rows]}")
-    rows = [r for r in spec.rows if not opts.rows or r.name in opts.rows]
+    rows = select_rows(spec, opts.rows)
     if opts.demos:  # recorded the spec's way when missing
         rows = [dataclasses.replace(r, demos=DemosSource(opts.demos, r.demos.record)) for r in rows]
     overrides: dict[str, dict[str, Any]] = {"adversarial": {}, "bc": {}}
