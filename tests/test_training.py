@@ -279,9 +279,9 @@ def test_two_real_runs_into_one_directory(demos_path, tmp_path):
     first = subprocess.Popen([*args, "--iterations", "10000000", "--seed", "1"], env=env, stderr=subprocess.PIPE,
                              text=True)
     try:
-        deadline = time.monotonic() + 120
-        while not (out / "config.json").exists() and first.poll() is None and time.monotonic() < deadline:
+        while not (out / "config.json").exists() and first.poll() is None:  # until the first run has started
             time.sleep(0.05)
+        assert first.poll() is None, first.stderr.read()
         second = subprocess.run([*args, "--iterations", "2", "--seed", "2"], env=env, capture_output=True, text=True,
                                 timeout=900)
         assert first.poll() is None  # still writing
@@ -299,10 +299,11 @@ def test_two_real_runs_into_one_directory(demos_path, tmp_path):
 def test_a_lock_left_by_a_killed_run_is_taken_over_by_resume(demos_path, tmp_path):
     out = tmp_path / "stale"
     train_bc(_bc(demos_path, out, iterations=5))
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pomil.training import RunLock; "
-                               "RunLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(120)",
-                               str(out)],
-                              env={**os.environ, "PYTHONPATH": SRC}, stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen([sys.executable, "-c", "import sys; from pomil.training import RunLock; "
+                               "RunLock(sys.argv[1]).acquire(); print('locked', flush=True); sys.stdin.read()",
+                               str(out)],  # holds the lock until it is killed (its stdin never closes before)
+                              env={**os.environ, "PYTHONPATH": SRC}, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)
     assert holder.stdout.readline().strip() == "locked"
     with pytest.raises(RunBusyError, match=f"pid {holder.pid} on"):
         train_bc(_bc(demos_path, out), resume=True)
