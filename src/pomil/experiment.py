@@ -145,13 +145,19 @@ class Spec:
                 "demos": str(Path(row.demos.file).resolve())}
 
     def keeps_policy(self, row: str, seed: int) -> bool:
-        return (self.policies == "all" or (self.policies == "first" and seed == self.first_seed)) and (
-            not self.policy_rows or row in self.policy_rows)
+        return keeps_policy({"policies": self.policies, "first_seed": self.first_seed,
+                             "policy_rows": self.policy_rows}, row, seed)
 
     def to_dict(self) -> dict[str, Any]:
         d = json.loads(json.dumps(dataclasses.asdict(self)))
         d["rows"] = {r["name"]: {k: v for k, v in r.items() if k != "name"} for r in d["rows"]}
         return d
+
+
+def keeps_policy(spec: dict[str, Any], row: str, seed: int) -> bool:
+    """Whether a spec (as metrics.json records it) keeps the policy of ``row``'s run of ``seed``."""
+    return (spec["policies"] == "all" or (spec["policies"] == "first" and seed == spec["first_seed"])) and (
+        not spec["policy_rows"] or row in spec["policy_rows"])
 
 
 def spec_names() -> list[str]:
@@ -792,16 +798,12 @@ def _policy_copies(loaded: list[tuple[Path, dict[str, Any]]], out: Path) -> list
     for src, r in loaded:
         spec = r["spec"]
         for name, row in r["rows"].items():
-            for run in row["runs"]:
-                seed = run["train_seed"]
-                if spec["policies"] == "all" or (spec["policies"] == "first" and seed == spec["first_seed"]):
-                    policy = src / "policies" / f"{name}-seed{seed}.pt"
-                    if spec["policy_rows"] and name not in spec["policy_rows"]:
-                        continue
-                    if not policy.is_file():
-                        raise PomilError(f"{policy}: missing (every kept policy is merged with it; --no-policies "
-                                         "joins the metrics alone)")
-                    copies.append((policy, out / "policies" / policy.name))
+            for seed in (run["train_seed"] for run in row["runs"] if keeps_policy(spec, name, run["train_seed"])):
+                policy = src / "policies" / f"{name}-seed{seed}.pt"
+                if not policy.is_file():
+                    raise PomilError(f"{policy}: missing (every kept policy is merged with it; --no-policies joins "
+                                     "the metrics alone)")
+                copies.append((policy, out / "policies" / policy.name))
     return copies
 
 

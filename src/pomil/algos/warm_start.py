@@ -222,8 +222,8 @@ def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: tor
     batch, prev, idx = demo_batch(data, prev_actions, batch_episodes, generator)
     resp = assignment.update(policy)[:, idx] if mixture and assignment is not None else None
     return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator=generator,
-                    num_codes=num_codes,
-                    mixture=mixture, responsibilities=resp, codes=codes_of(idx) if codes_of is not None else None)
+                    num_codes=num_codes, mixture=mixture, responsibilities=resp,
+                    codes=codes_of(idx) if codes_of is not None else None)
 
 
 def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: PaddedEpisodes, *,
@@ -233,8 +233,7 @@ def bc_step(policy: GaussianPolicy, optimizer: torch.optim.Optimizer, data: Padd
             codes_of: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict[str, float]:
     """One update of :func:`demo_bc_loss`."""
     loss, stats = demo_bc_loss(policy, data, prev_actions, batch_episodes=batch_episodes, generator=generator,
-                               num_codes=num_codes, mixture=mixture, assignment=assignment,
-                               codes_of=codes_of)
+                               num_codes=num_codes, mixture=mixture, assignment=assignment, codes_of=codes_of)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -416,8 +415,7 @@ def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_
         for step in range(1, cfg.warm_start_iterations + 1):
             with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
                 stats = bc_step(policy, opt, expert, prev_actions=expert_prev, batch_episodes=cfg.warm_start_batch,
-                                generator=gen, num_codes=num_codes, mixture=mixture,
-                                assignment=assignment)
+                                generator=gen, num_codes=num_codes, mixture=mixture, assignment=assignment)
             decay.step()
             check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
             bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
