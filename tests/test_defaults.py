@@ -41,7 +41,7 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     # the circles experiment adds only the run's own fields to the defaults (auto: the circles' default preset)
     spec = load_spec("circles")
     row = next(r for r in spec.rows if r.learner == "infogail-pomdp")
-    repro = LEARNERS["infogail-pomdp"].make_config({**spec.values(row), "out": str(tmp_path), "seed": 3})
+    repro = resolved(LEARNERS["infogail-pomdp"].make_config({**spec.values(row), "out": str(tmp_path), "seed": 3}))
     plain = AdversarialConfig(demos=repro.demos, out=str(tmp_path), seed=3)
     assert repro.preset == "default" and repro == resolved(plain) == dataclasses.replace(plain, preset="default")
 
@@ -90,35 +90,41 @@ def standard_hopper_demos(tmp_path_factory):
     return path
 
 
+def at_start(cls, values):
+    """The config a run of ``values`` trains with: built, then its preset resolved where training starts."""
+    return resolved(from_dict(cls, values))
+
+
 def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(standard_hopper_demos, tmp_path):
     from pomil.algos.bc import BCConfig
 
     paper = str(ROOT / "data" / "hopper-paper.npz")
     for demos in (str(ROOT / "data" / "circles.npz"), paper, str(tmp_path / "missing.npz")):
-        cfg = from_dict(AdversarialConfig, {"demos": demos})
+        cfg = at_start(AdversarialConfig, {"demos": demos})
         assert cfg == dataclasses.replace(AdversarialConfig(demos=demos), preset="default")
-        assert from_dict(BCConfig, {"demos": demos}) == dataclasses.replace(BCConfig(demos=demos), preset="default")
-    std = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos)})
+        assert at_start(BCConfig, {"demos": demos}) == dataclasses.replace(BCConfig(demos=demos), preset="default")
+    assert from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos)}).preset == "auto"  # read at the start
+    std = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos)})
     assert std.preset == "terminating"
     assert (std.policy_obs_delta, std.policy_prev_action) == (True, False)
     assert (std.warm_start_iterations, std.warm_start_lr, std.warm_start_lr_decay, std.warm_start_log_std_lr_scale,
             std.warm_start_fit_log_std) == (600, 3e-3, True, 10.0, True)
     assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True) == \
-        from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "fast-warm-start"})
+        at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "fast-warm-start"})
     # the user's values win, also one equal to the field's default; a named preset is taken as named
-    mine = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "policy_prev_action": True,
+    mine = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "policy_prev_action": True,
                                          "warm_start_iterations": 100})
     assert (mine.preset, mine.policy_obs_delta, mine.policy_prev_action, mine.warm_start_iterations) == (
         "terminating", True, True, 100)
-    default = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"})
+    default = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"})
     assert default.warm_start_lr == 1e-2
     # the run's env_kwargs decide, as they decide the environment: paper's demonstrations made to end on a fall
-    ended = from_dict(AdversarialConfig, {"demos": paper, "env_kwargs": ["terminate_when_unhealthy=true"]})
+    ended = at_start(AdversarialConfig, {"demos": paper, "env_kwargs": ["terminate_when_unhealthy=true"]})
     assert ended.preset == "terminating"
-    kept = from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos),
+    kept = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos),
                                          "env_kwargs": ["terminate_when_unhealthy=false"]})
     assert kept.preset == "default"
-    bc = from_dict(BCConfig, {"demos": str(standard_hopper_demos)})
+    bc = at_start(BCConfig, {"demos": str(standard_hopper_demos)})
     assert (bc.preset, bc.obs_delta, bc.prev_action, bc.iterations) == ("terminating", True, False, 500)
     # built in Python: resolved when it trains, the preset's values for the fields left at their defaults
     py = resolved(AdversarialConfig(demos=str(standard_hopper_demos), warm_start_iterations=100))

@@ -233,18 +233,16 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
 
     A config class with named presets (a ``PRESETS`` table of ``{name: {field: value}}``
     and a ``preset`` field) gets the named preset's values first; the dict's own
-    values override them."""
+    values override them.  Preset ``auto`` stays as it is, with the keys given noted,
+    until :func:`resolved` replaces it when training starts."""
     values = _renamed(cls, values, source)
     _reject_unknown(values, [f.name for f in dataclasses.fields(cls)], source)  # type: ignore[arg-type]
     presets: dict[str, dict[str, Any]] = getattr(cls, "PRESETS", {})
-    if presets:
-        name = values.get("preset", _default_of(cls, "preset"))
-        if name == AUTO:
-            name = cls.auto_preset(values)  # type: ignore[attr-defined]
-            values = {**values, "preset": name}  # the run records the preset it ran
-        if name is not None and (not isinstance(name, str) or name not in presets):
+    name = values.get("preset", _default_of(cls, "preset")) if presets else None
+    if name is not None and name != AUTO:
+        if not isinstance(name, str) or name not in presets:
             raise ConfigError(f"config key 'preset': expected one of {[AUTO, *presets]}, got {name!r}")
-        values = {**(presets[name] if name is not None else {}), **values}
+        values = {**presets[name], **values}
     hints = _resolved_types(cls)
     named = {f.name: field_names(f) for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     where = "" if source == "config" else f"{source}: "
@@ -252,6 +250,8 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
         coerced = {k: _coerce_named(v, hints[k], k, named[k]) for k, v in values.items()}
         config = cls(**coerced)
         check_fields(config)  # also for configs without a __post_init__ that calls it
+        if name == AUTO:
+            object.__setattr__(config, "_given", frozenset(values))  # for resolved(): the values given win
         return config
     except ConfigError as err:
         raise ConfigError(f"{where}{err}") from None
@@ -269,13 +269,18 @@ def _default_of(cls: type, name: str) -> Any:
 
 
 def resolved(config: T) -> T:
-    """``config`` with ``preset`` auto replaced by the preset it stands for, for a config built in Python
-    rather than by :func:`from_dict`: the preset's values go to the fields left at their defaults."""
+    """``config`` with ``preset`` auto replaced by the preset it stands for (the class's ``auto_preset``,
+    which reads the demonstrations), called once where training starts; the run records the preset it ran.
+    The preset's values go under the values given to :func:`from_dict` (for a config built in Python, under
+    those that differ from their defaults)."""
     if getattr(config, "preset", None) != AUTO:
         return config
+    given = getattr(config, "_given", None)
     explicit = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)  # type: ignore[arg-type]
-                if getattr(config, f.name) != f.default}
-    return from_dict(type(config), json.loads(json.dumps(explicit)), source=type(config).__name__)
+                if (f.name in given if given is not None else getattr(config, f.name) != f.default)}
+    explicit = json.loads(json.dumps({k: v for k, v in explicit.items() if k != "preset"}))
+    cls = type(config)
+    return from_dict(cls, {**explicit, "preset": cls.auto_preset(explicit)}, source=cls.__name__)  # type: ignore[attr-defined]
 
 
 def _renamed(cls: type, values: dict[str, Any], source: str, note: bool = True) -> dict[str, Any]:

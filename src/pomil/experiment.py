@@ -52,7 +52,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from pomil.config import check_fields, load_config_file, option, to_dict
+from pomil.config import check_fields, load_config_file, option, resolved, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
@@ -305,8 +305,8 @@ def run_one(job: RunJob) -> dict[str, Any]:
     if resume and finished(out, values):
         return json.loads(done.read_text())
     trainer = LEARNERS[learner]
-    cfg = trainer.make_config({**values, "out": run_dir, "seed": seed, "progress": progress},
-                              source=f"run {run_dir}")
+    cfg = resolved(trainer.make_config({**values, "out": run_dir, "seed": seed, "progress": progress},
+                                       source=f"run {run_dir}"))  # the results record the preset run
     again = resume and (out / "checkpoint.pt").exists()
     if again:
         print(f"{run_dir}: resuming from its checkpoint", file=sys.stderr, flush=True)

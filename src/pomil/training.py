@@ -286,8 +286,9 @@ def check_optimizer_state(opt: torch.optim.Optimizer) -> None:
                 raise ValueError(f"optimizer state '{key}' is not a tensor of its parameter's shape {tuple(p.shape)}")
 
 
-def rng_state(generator: torch.Generator) -> dict[str, torch.Tensor]:
-    return {"torch": torch.get_rng_state(), "generator": generator.get_state()}
+def rng_state(generator: torch.Generator, penalty: torch.Generator) -> dict[str, torch.Tensor]:
+    """A checkpoint's ``rng``: ``torch``, the penalty generator's state (see :meth:`RunLoop.start`); ``generator``."""
+    return {"torch": penalty.get_state(), "generator": generator.get_state()}
 
 
 def restore_rng(state: dict[str, torch.Tensor], generator: torch.Generator) -> None:
@@ -564,6 +565,7 @@ class RunLoop:
         self.iteration = 0  # the last iteration done: 0, the checkpoint's once resumed, then each one run
         self.env_steps: int | None = None
         self.generator = torch.Generator()
+        self.penalty_generator = torch.Generator()
         self.logger: RunLogger | None = None
         self.env: dict[str, Any] = {}
         self.record: dict[str, Any] = {}
@@ -595,7 +597,11 @@ class RunLoop:
         ``carried``: by name, what else the running process holds and the next iteration reads (objects with
         ``state_dict`` and ``load_state_dict``: the batched environment, whose generators draw the next
         episodes' initial states; a code assignment that a step refreshes now and then), kept in the
-        checkpoint as ``carried`` so that a resumed run goes on exactly as the run uninterrupted."""
+        checkpoint as ``carried`` so that a resumed run goes on exactly as the run uninterrupted.
+
+        ``penalty_generator`` starts from torch's global RNG as it is here, after the networks are built
+        (or restored): the gradient penalty's interpolation weights draw from it, the numbers they drew from
+        the global RNG before the penalty had a generator of its own; checkpoints keep it as ``rng.torch``."""
         self.env, self.nets, self.optimizers, self.record = env, nets, optimizers, dict(record or {})
         self.carried = {k: v for k, v in (carried or {}).items() if v is not None}
         self.lock.acquire(self.resume)
@@ -604,6 +610,7 @@ class RunLoop:
                             device=self.device, config_class=type(self.config),
                             carried=self.carried) if self.resume else RunStart())
         self.iteration = begun.iteration
+        self.penalty_generator.set_state(torch.get_rng_state())
         self.env_steps = begun.env_steps if env_steps else None
         self.guard.saved(begun.iteration)
         if self.resume and begun.iteration == self.config.iterations:
@@ -672,7 +679,7 @@ class RunLoop:
         if self.nets.get("obs_norm") is not None:
             payload["obs_norm"] = self.nets["obs_norm"].state_dict()
         payload["optimizers"] = {k: opt.state_dict() for k, opt in self.optimizers.items()}
-        payload["rng"] = rng_state(self.generator)
+        payload["rng"] = rng_state(self.generator, self.penalty_generator)
         if self.carried:
             payload["carried"] = {k: obj.state_dict() for k, obj in self.carried.items()}
         if self.env_steps is not None:

@@ -41,9 +41,9 @@ def test_critic_steps_increase_the_wasserstein_estimate(encoder, clip, gp, opt):
     critic = heads.critic(2, 2, encoder, hidden_size=32)
     optim = torch.optim.RMSprop(critic.parameters(),
                                 lr=5e-3) if opt == "rmsprop" else torch.optim.Adam(critic.parameters(), lr=1e-3)
-    _, first = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=gp)
+    _, first = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=gp, generator=g)
     for _ in range(30):
-        loss, _ = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=gp)
+        loss, _ = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=gp, generator=g)
         optim.zero_grad()
         loss.backward()
         optim.step()
@@ -51,7 +51,7 @@ def test_critic_steps_increase_the_wasserstein_estimate(encoder, clip, gp, opt):
             with torch.no_grad():
                 for p in critic.parameters():
                     p.clamp_(-clip, clip)
-    _, last = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=0.0)
+    _, last = critic_loss(critic, expert, policy, objective="wasserstein", gp_weight=0.0, generator=g)
     assert last["critic/wasserstein"] > first["critic/wasserstein"] + 1e-3, (first, last)
     assert last["critic/wasserstein"] > 0
 

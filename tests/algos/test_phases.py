@@ -37,7 +37,8 @@ def make_run(demos, **kw):
     expert = demos.padded("cpu")
     expert = replace(expert, actions=execute(expert.actions))
     sampler = BatchSampler(cfg.update_mode, cfg.window_length)
-    run = AdversarialRun(cfg, m, build_optimizers(cfg, m), gen, sampler, expert, shift_actions(expert.actions),
+    run = AdversarialRun(cfg, m, build_optimizers(cfg, m), gen, torch.Generator().manual_seed(1), sampler, expert,
+                         shift_actions(expert.actions),
                          execute, num_codes=2)
     collected = collect(make_vec_env(env_id, kwargs, cfg.num_envs), m.policy, m.value, num_codes=2, execute=execute,
                         generator=gen, device="cpu")

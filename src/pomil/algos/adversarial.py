@@ -276,7 +276,8 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
         # within 22 steps; the velocity dz_t and the fast warm start kept it up (docs/hopper.md, "Standard setting").
         "terminating": {"policy_obs_delta": True, "policy_prev_action": False, **FAST_WARM_START},
     }
-    """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
+    """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``;
+    ``auto`` is replaced by one of them when training starts (``config.resolved``)."""
 
     RENAMED: ClassVar[dict[str, str]] = {f"bc_init_{k}": f"warm_start_{k}" for k in (
         "iterations", "lr", "lr_decay", "lr_warmup", "log_std_lr_scale", "fit_log_std", "code_lr_scale", "batch",
@@ -414,7 +415,11 @@ def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy,
 
 def critic_loss(
     critic: BeliefHead, expert: tuple, policy: Rollout, *, objective: str, gp_weight: float,
+    generator: torch.Generator,
 ) -> tuple[torch.Tensor, dict[str, float]]:
+    """The critic's loss on an expert batch (obs, prev, actions, starts, mask) against a policy batch: the
+    Wasserstein estimate's negative, or the discriminator's cross-entropy; plus the gradient penalty on
+    interpolates (weights drawn from ``generator``) when ``gp_weight`` > 0."""
     e_obs, e_prev, e_act, e_starts, e_mask = expert
 
     def score(obs, prev, act, starts):
@@ -435,7 +440,7 @@ def critic_loss(
     if gp_weight > 0:
         b = min(e_obs.shape[1], policy.num_envs)
         t = min(e_obs.shape[0], policy.num_steps)
-        alpha = torch.rand(1, b, 1, device=e_obs.device)
+        alpha = torch.rand(1, b, 1, generator=generator).to(e_obs.device)
         mix = lambda x, y: (alpha * x[:t, :b] + (1 - alpha) * y[:t, :b]).detach().requires_grad_(True)  # noqa: E731
         obs_i, prev_i = mix(e_obs, policy.observations), mix(e_prev, policy.prev_actions)
         act_i = mix(e_act, policy.executed_actions)
@@ -566,15 +571,24 @@ def resolve_num_codes(cfg: AdversarialConfig, demos: Demonstrations) -> int:
     return 2
 
 
-@dataclass
+def uses_mixture(cfg: AdversarialConfig, num_codes: int) -> bool:
+    """Whether the warm start's and the BC term's likelihood is the discrete codes' mixture (else random
+    codes, or continuous codes: each episode's own, ``EpisodeCodes``)."""
+    return cfg.warm_start_codes == "mixture" and num_codes > 0 and cfg.code_kind == "discrete"
+
+
+@dataclass(frozen=True)
 class AdversarialRun:
-    """What every phase of an iteration reads: the networks, their optimisers, the
-    demonstrations (with executed actions), the batch sampler and the run's generator."""
+    """What every phase of an iteration reads, fixed for the run: the networks, their optimisers, the
+    demonstrations (with executed actions), the batch sampler and the run's generators (``gen`` for
+    batches and codes, ``penalty_gen`` for the gradient penalty, :meth:`pomil.training.RunLoop.start`).
+    A phase takes the iteration's own inputs (rollout, codes) as arguments and returns its stats."""
 
     cfg: AdversarialConfig
     m: Modules
     opt: dict[str, torch.optim.Optimizer]
     gen: torch.Generator
+    penalty_gen: torch.Generator
     sampler: BatchSampler
     expert: PaddedEpisodes
     expert_prev: torch.Tensor
@@ -590,9 +604,7 @@ class AdversarialRun:
 
     @property
     def mixture(self) -> bool:
-        """The warm start's and the BC term's likelihood: the discrete codes' mixture (else random
-        codes, or continuous codes: each episode's own, ``episode_codes``)."""
-        return self.cfg.warm_start_codes == "mixture" and self.num_codes > 0 and self.cfg.code_kind == "discrete"
+        return uses_mixture(self.cfg, self.num_codes)
 
     def demo_codes(self, idx: torch.Tensor) -> torch.Tensor | None:
         """The BC term's continuous codes for demonstration episodes ``idx``: each episode's own
@@ -710,7 +722,8 @@ def update_critic(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, 
         expert = run.sampler.expert(run.expert, e_act, e_prev, cfg.critic_batch, run.gen)
         with run.precision():
             loss, s = critic_loss(m.critic, expert, run.sampler.policy(roll, cfg.critic_batch, run.gen),
-                                  objective=run.objective, gp_weight=cfg.gradient_penalty)
+                                  objective=run.objective, gp_weight=cfg.gradient_penalty,
+                                  generator=run.penalty_gen)
         run.check(it, "critic loss", s["critic/loss"])
         run.step(it, "critic", loss, m.critic.parameters)
         if cfg.weight_clip > 0 and run.objective == "wasserstein":
@@ -909,10 +922,8 @@ def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
             return {f"eval/{task}/{k}": float(v) for task, r in res["tasks"].items() for k, v in r.items()}
 
     def evaluate(policy: GaussianPolicy) -> dict[str, float]:
-        rng_state_before = torch.get_rng_state()
         stats = measure(TrainedPolicy(policy, cfg.learner, env_info, policy.log_std.device))
         policy.train()
-        torch.set_rng_state(rng_state_before)
         return stats
 
     return evaluate
@@ -972,10 +983,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             episode_codes = EpisodeCodes(expert, num_codes, cfg.code_prior).to(loop.device)
             nets["episode_codes"] = episode_codes  # the BC term's codes, kept for --resume
         expert = replace(expert, actions=execute(expert.actions))  # same form as the policy's, see collect
-        run = AdversarialRun(cfg, m, opt, gen, BatchSampler(cfg.update_mode, cfg.window_length), expert,
-                             shift_actions(expert.actions), execute, num_codes, loop.guard,
-                             episode_codes=episode_codes)
-        run.assignment = mixture_assignment(cfg, expert, run.expert_prev, run.mixture)  # the BC term's
+        expert_prev = shift_actions(expert.actions)
+        run = AdversarialRun(cfg, m, opt, gen, loop.penalty_generator, BatchSampler(cfg.update_mode, cfg.window_length),
+                             expert, expert_prev, execute, num_codes, loop.guard, episode_codes=episode_codes,
+                             assignment=mixture_assignment(cfg, expert, expert_prev, uses_mixture(cfg, num_codes)))
         if not loop.start(env=env_info, nets=nets, optimizers=opt, record=choice.record() if choice else None,
                           carried={"env": env, "assignment": run.assignment}):
             return loop.ckpt_path

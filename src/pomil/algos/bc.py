@@ -57,7 +57,8 @@ class BCConfig(RunConfig):
         # 22 steps; (z_t, dz_t) alone stayed up 377-455 steps (docs/hopper.md, "What makes the clone fall").
         "terminating": {"obs_delta": True, "prev_action": False},
     }
-    """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``."""
+    """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``;
+    ``auto`` is replaced by one of them when training starts (``config.resolved``)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
