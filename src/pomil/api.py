@@ -31,13 +31,6 @@ from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.training import load_checkpoint, resolve_device, save_checkpoint
 
 
-def _count(name: str, value: Any) -> int:
-    """A positive integer argument (numpy integers too; not bools, floats or strings)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise InvalidArgument(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
-
-
 class TrainedPolicy:
     """A policy with what it needs to act: its environment (``env``: id, kwargs,
     observation_mask) and, for PPO experts, its observation normaliser."""
@@ -120,7 +113,10 @@ class TrainedPolicy:
         finite numbers (default: the prior's quantiles at (i + 0.5) / num_envs in every
         dimension, low to high); ignored without codes.  Bad arguments raise
         :class:`pomil.errors.InvalidArgument` (a ValueError) naming the argument."""
-        num_envs = _count("num_envs", num_envs)
+        # integers (numpy's too), not bools, floats or strings
+        if isinstance(num_envs, (bool, np.bool_)) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise InvalidArgument(f"num_envs must be a positive integer, got {num_envs!r}")
+        num_envs = int(num_envs)
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
             raise InvalidArgument(f"seed must be a non-negative integer or None, got {seed!r}")
         c = None
@@ -138,9 +134,8 @@ class TrainedPolicy:
             self._gen.manual_seed(seed)
         else:
             self._gen.seed()
-        self._codes = None
-        if c is not None:
-            self._codes = code_vectors(c, self.policy.arch.code_kind, self.policy.arch.num_codes).to(self.device)
+        self._codes = (None if c is None else
+                       code_vectors(c, self.policy.arch.code_kind, self.policy.arch.num_codes).to(self.device))
 
     def _codes_arg(self, codes: Any, num_envs: int) -> torch.Tensor:
         """``codes`` as a (num_envs,) long tensor: integers only (no truncated floats, strings or bools)."""
@@ -195,10 +190,9 @@ class TrainedPolicy:
         if self.obs_norm is not None:
             obs = self.obs_norm(obs)
         dist, self._h = self.policy.step(obs, self._prev, self._h, self._start, self._codes)
-        if deterministic:
-            action = dist.mean
-        else:
-            action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=self._gen, device=self.device)
+        action = dist.mean
+        if not deterministic:
+            action = action + dist.stddev * torch.randn(dist.mean.shape, generator=self._gen, device=self.device)
         self._prev = self._executed(action)  # a_{t-1} as the environment carried it out, as in training
         self._start = torch.zeros_like(self._start)
         return action.cpu().numpy() if as_numpy else action

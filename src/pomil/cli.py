@@ -14,6 +14,8 @@ import dataclasses
 import json
 import sys
 import typing
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
@@ -28,30 +30,28 @@ from pomil.parallel import require_ray
 # ----------------------------------------------------------- configs <-> flags
 def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str, Any] | None = None) -> None:
     """One flag per config field, except the ``fixed`` ones (set by the subcommand)."""
+    fixed = fixed or {}
     parser.add_argument("--config", metavar="FILE.json", help="JSON object of config keys; flags override it")
-    parser.set_defaults(**(fixed or {}))
+    parser.set_defaults(**fixed)
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        if fixed and f.name in fixed:
+        if f.name in fixed:
             continue
         tp = hints[f.name]
         flag = "--" + f.name.replace("_", "-")
-        default = f.default
         interval = field_interval(f)
         words = "".join(f" or {word}" for word in field_names(f))
-        help_text = f"{field_help(f)} (default: {default!r}{'; in ' + interval.text + words if interval else ''})"
+        help_text = f"{field_help(f)} (default: {f.default!r}{'; in ' + interval.text + words if interval else ''})"
         help_text = help_text.replace("%", "%%")  # argparse formats help with %; a field's docs may say "9%"
         if tp is bool:
-            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_text)
-            continue
-        kwargs: dict[str, Any] = {"dest": f.name, "default": None, "help": help_text}
-        if get_origin(tp) is Literal:
-            kwargs["choices"] = list(get_args(tp))
+            kind: dict[str, Any] = {"action": argparse.BooleanOptionalAction}
+        elif get_origin(tp) is Literal:
+            kind = {"choices": list(get_args(tp))}
         else:
-            kwargs["metavar"] = f.name.upper()
-        parser.add_argument(flag, **kwargs)
+            kind = {"metavar": f.name.upper()}
+        parser.add_argument(flag, dest=f.name, default=None, help=help_text, **kind)
     for old, new in getattr(cls, "RENAMED", {}).items():  # deprecated flags, still read
-        if not (fixed and new in fixed):
+        if new not in fixed:
             parser.add_argument("--" + old.replace("_", "-"), dest=new, default=None, help=argparse.SUPPRESS)
 
 
@@ -66,6 +66,15 @@ def config_from_args(cls: type, args: argparse.Namespace) -> Any:
         if v is not None:
             values[f.name] = v
     return from_dict(cls, values, getattr(args, "config", None) or "config")
+
+
+@contextmanager
+def _reported(prefix: str) -> Iterator[None]:
+    """A ValueError raised inside becomes a one-line PomilError ``prefix: message``."""
+    try:
+        yield
+    except ValueError as err:
+        raise PomilError(f"{prefix}: {err}") from None
 
 
 # ------------------------------------------------------------------ commands
@@ -102,14 +111,12 @@ def cmd_demos(args: argparse.Namespace) -> int:
             raise PomilError(f"config key 'radius_range': expected two radii R1,R2 with R1 <= R2, got "
                              f"{','.join(map(str, cfg.radius_range))}")
         radius_range = (float(cfg.radius_range[0]), float(cfg.radius_range[1]))
-    try:
+    with _reported("demos circles"):
         radius = cfg.radius if radius_range is None else sum(radius_range) / 2
         spec = make_spec(cfg.modes, radius, cfg.episode_length, history=cfg.history, action_type=cfg.action_type)
         if cfg.circles:
             spec = dataclasses.replace(spec, circles=tuple(map(_circle, cfg.circles)))
         demos = record_circles_demos(spec, cfg.episodes, cfg.noise_std, seed=cfg.seed, radius_range=radius_range)
-    except ValueError as err:
-        raise PomilError(f"demos circles: {err}") from None
     demos.save(cfg.out)
     rets = ", ".join(f"mode {k}: {v:.2f}" for k, v in demos.metadata["expert_returns"].items())
     radii = "" if radius_range is None else f", radius uniform in [{radius_range[0]:g}, {radius_range[1]:g}]"
@@ -150,10 +157,8 @@ class HopperDemosConfig:
 def _mask_arg(text: str) -> str | list[int] | None:
     from pomil.envs.wrappers import parse_mask
 
-    try:
+    with _reported("--observation-mask"):
         return parse_mask(text)
-    except ValueError as err:
-        raise PomilError(f"--observation-mask: {err}") from None
 
 
 @dataclass(frozen=True)
@@ -181,12 +186,10 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
         raise PomilError("demos record: --expert and --out are required")
     if not Path(cfg.expert).is_file():
         raise PomilError(f"{cfg.expert}: no expert checkpoint there (train one: pomil experts train --env-id ...)")
-    try:
+    with _reported("demos record"):
         demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None,
-                                    observation_mask=_mask_arg(cfg.observation_mask),
-                                    seed=cfg.seed, action_noise=cfg.action_noise)
-    except ValueError as err:
-        raise PomilError(f"demos record: {err}") from None
+                                    observation_mask=_mask_arg(cfg.observation_mask), seed=cfg.seed,
+                                    action_noise=cfg.action_noise)
     demos.save(cfg.out)
     md = demos.metadata
     task = md["label_names"][0]
@@ -214,11 +217,9 @@ def cmd_demos_merge(args: argparse.Namespace) -> int:
     if not cfg.out:
         raise PomilError("demos merge: --out is required")
     sources = [Demonstrations.load(f) for f in args.files]
-    try:
+    with _reported("demos merge"):
         demos = merge_demos(sources, list(cfg.proportions) or None, cfg.episodes or None, seed=cfg.seed,
                             names=list(args.files))
-    except ValueError as err:
-        raise PomilError(f"demos merge: {err}") from None
     demos.save(cfg.out)
     counts = np.bincount(demos.labels, minlength=len(demos.metadata["label_names"]))
     print(f"wrote {cfg.out}: {demos.num_episodes} episodes, unlabeled for training; labels kept for evaluation: "
@@ -248,24 +249,17 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
     from pomil.envs.locomotion import HOPPER_EXPERTS, demo_recording
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
-    try:
-        episodes, noise = demo_recording(cfg.setting, cfg.episodes, cfg.action_noise, ("--episodes", "--action-noise"))
-    except ValueError as err:
-        raise PomilError(f"demos hopper: {err}") from None
     shipped = HOPPER_EXPERTS[cfg.setting]
-    experts = {"forward": cfg.forward_expert or shipped["forward"],
-               "backward": cfg.backward_expert or shipped["backward"]}
+    experts = {task: getattr(cfg, f"{task}_expert") or shipped[task] for task in ("forward", "backward")}
     out = cfg.out or f"data/hopper-{cfg.setting}.npz"
-    for task, path in experts.items():
-        if not Path(path).is_file():
-            raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
-                             f"{task})")
-    try:
+    with _reported("demos hopper"):
+        episodes, noise = demo_recording(cfg.setting, cfg.episodes, cfg.action_noise, ("--episodes", "--action-noise"))
+        for task, path in experts.items():
+            if not Path(path).is_file():
+                raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
+                                 f"{task})")
         demos = record_hopper_demos(experts, episodes, cfg.setting, seed=cfg.seed,
-                                    observation_mask=_mask_arg(cfg.observation_mask),
-                                    action_noise=noise)
-    except ValueError as err:
-        raise PomilError(f"demos hopper: {err}") from None
+                                    observation_mask=_mask_arg(cfg.observation_mask), action_noise=noise)
     demos.save(out)
     md = demos.metadata
     print(f"wrote {out}: {demos.num_episodes} episodes ({episodes} per task, {cfg.setting} setting), "
@@ -315,8 +309,7 @@ def _format_metrics(m: dict[str, Any]) -> str:
     lines = [f"algo {m['algo']}  codes {m['num_codes']}  episodes/code {m['episodes_per_code']}  "
              f"{'deterministic' if m['deterministic'] else 'stochastic'}"]
     k = len(m["overall_mode_share"])
-    head = "code  " + "  ".join(f"mode{j:<3d}" for j in range(k)) + "  none    purity"
-    lines.append(head)
+    lines.append("code  " + "  ".join(f"mode{j:<3d}" for j in range(k)) + "  none    purity")
     for pc in m["per_code"]:
         code = str(pc["code"]) if m["num_codes"] else "-"
         shares = "  ".join(f"{s:7.2f}" for s in pc["mode_share"])
@@ -346,7 +339,7 @@ def matching_demos(path: str, policies: list[tuple[str, Any]]) -> Any:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from pomil.api import TrainedPolicy
     from pomil.envs import env_family
-    from pomil.eval.circles import evaluate_circles
+    from pomil.eval.circles import evaluate_circles, evaluate_code_radius
 
     if args.episodes_per_code < 1:
         raise PomilError(f"--episodes-per-code must be >= 1, got {args.episodes_per_code}")
@@ -359,15 +352,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if demos is not None:
         print("pomil: note: --demos matches the checkpoint but circles evaluation does not use it", file=sys.stderr)
     if policy.code_dim:
-        from pomil.eval.circles import evaluate_code_radius
-
         metrics, _ = evaluate_code_radius(policy, args.code_values, args.episodes_per_code, seed=args.seed,
                                           deterministic=args.deterministic)
-        print(json.dumps(metrics, indent=2) if args.json else _format_code_radius(metrics))
-        return 0
-    metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, deterministic=args.deterministic,
-                                  threshold=args.none_threshold)
-    print(json.dumps(metrics, indent=2) if args.json else _format_metrics(metrics))
+    else:
+        metrics, _ = evaluate_circles(policy, args.episodes_per_code, args.seed, deterministic=args.deterministic,
+                                      threshold=args.none_threshold)
+    print(json.dumps(metrics, indent=2) if args.json else (_format_code_radius if policy.code_dim else
+                                                           _format_metrics)(metrics))
     return 0
 
 
@@ -430,17 +421,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if len(set(demos.episode_lengths.tolist())) != 1:
             raise PomilError(f"{args.demos}: field 'episode_bounds': expected episodes of one length for plotting "
                              "experts")
-        T = int(demos.episode_lengths[0])
-        pos = demos.states.reshape(demos.num_episodes, T, -1)[:, :, :2]
         # states hold the position *before* each action: shift by one to show visited points
-        pos = pos[:, 1:]
+        pos = demos.states.reshape(demos.num_episodes, int(demos.episode_lengths[0]), -1)[:, 1:, :2]
         panels.append(("experts", pos, demos.labels, "mode"))
     for ckpt, policy in policies:
         codes = None
         if policy.code_dim:  # continuous: 5 code values over the prior in the first dimension, the rest at 0
             codes = np.zeros((5 * args.episodes_per_code, policy.code_dim), dtype=np.float32)
-            codes[:, 0] = np.repeat(np.arange(5), args.episodes_per_code)
-            codes[:, 0] = prior_grid(policy.code_prior, 5).numpy()[codes[:, 0].astype(int)]
+            codes[:, 0] = np.repeat(prior_grid(policy.code_prior, 5).numpy(), args.episodes_per_code)
         roll = rollout_circles(policy, args.episodes_per_code, args.seed, deterministic=args.deterministic, codes=codes)
         groups = roll["codes"] if codes is None else np.repeat(np.arange(5), args.episodes_per_code)
         panels.append((f"{policy.algo}: {Path(ckpt).parent.name or ckpt}", roll["positions"], groups,
@@ -491,16 +479,16 @@ def _add_demos(sub: argparse._SubParsersAction) -> None:
     """``pomil demos``: circles, hopper, record, import-minari, export-minari, merge."""
     demos = sub.add_parser("demos", help="record expert demonstrations")
     demos_sub = demos.add_subparsers(dest="env", required=True, metavar="ENV")
-    dc = demos_sub.add_parser("circles", help="scripted circle experts, equal numbers per mode")
-    add_config_flags(dc, CirclesDemosConfig)
-    dc.set_defaults(func=cmd_demos)
-    dh = demos_sub.add_parser("hopper",
-                              help="Hopper forward + backward experts, equal numbers per task, positions-only view")
-    add_config_flags(dh, HopperDemosConfig)
-    dh.set_defaults(func=cmd_demos_hopper)
-    dr = demos_sub.add_parser("record", help="one expert checkpoint on its own environment (any task), one label")
-    add_config_flags(dr, RecordDemosConfig)
-    dr.set_defaults(func=cmd_demos_record)
+    for name, text, cls, func in (
+            ("circles", "scripted circle experts, equal numbers per mode", CirclesDemosConfig, cmd_demos),
+            ("hopper", "Hopper forward + backward experts, equal numbers per task, positions-only view",
+             HopperDemosConfig, cmd_demos_hopper),
+            ("record", "one expert checkpoint on its own environment (any task), one label", RecordDemosConfig,
+             cmd_demos_record)):
+        dp = demos_sub.add_parser(name, help=text)
+        add_config_flags(dp, cls)
+        dp.set_defaults(func=func)
+    root = "Minari datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)"
     di = demos_sub.add_parser("import-minari",
                               help="a local Minari dataset as pomil demonstrations (needs the minari extra)")
     di.add_argument("dataset_id", help="Minari dataset id, e.g. pomil/hopper-paper-v0")
@@ -508,15 +496,13 @@ def _add_demos(sub: argparse._SubParsersAction) -> None:
     di.add_argument("--observation-mask", default="",
                     help="what the learner observes, for datasets not written by pomil: positions-only or indices "
                          "(default: all)")
-    di.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or "
-                                          "~/.minari/datasets)")
+    di.add_argument("--minari-root", help=root)
     di.set_defaults(func=cmd_demos_minari)
     de = demos_sub.add_parser("export-minari",
                               help="pomil demonstrations as a local Minari dataset (needs the minari extra)")
     de.add_argument("demos", help="demonstrations .npz")
     de.add_argument("--dataset-id", required=True, help="Minari dataset id to create, [namespace/]name-vN")
-    de.add_argument("--minari-root", help="Minari datasets folder (default: $MINARI_DATASETS_PATH or "
-                                          "~/.minari/datasets)")
+    de.add_argument("--minari-root", help=root)
     de.set_defaults(func=cmd_demos_minari)
     dm = demos_sub.add_parser("merge", help="several recordings (experts / tasks) into one unlabeled training set")
     dm.add_argument("files", nargs="+", help="demonstrations .npz files to merge")
@@ -524,39 +510,31 @@ def _add_demos(sub: argparse._SubParsersAction) -> None:
     dm.set_defaults(func=cmd_demos_merge)
 
 
-def _add_experts(sub: argparse._SubParsersAction) -> None:
-    """``pomil experts``: hopper, train (any Gymnasium id)."""
+def _add_training(sub: argparse._SubParsersAction) -> None:
+    """``pomil experts ENV`` (hopper; train: any Gymnasium id) and ``pomil train ALGO`` (a subcommand per learner of
+    the learner table): a config's flags and --resume each."""
     from pomil.algos.expert import ExpertConfig
+    from pomil.envs.locomotion import HOPPER_ID
+    from pomil.learners import LEARNERS
 
     ex = sub.add_parser("experts", help="train a PPO expert (MLP policy, pomil's PPO) on a task's reward")
     ex_sub = ex.add_subparsers(dest="env", required=True, metavar="ENV")
-    from pomil.envs.locomotion import HOPPER_ID
-
-    for name, fixed, text in (("hopper", {"demos": "", "env_id": HOPPER_ID}, f"{HOPPER_ID} forward or backward"),
-                              ("train", {"demos": ""}, "any Gymnasium id (--env-id) with 1-D Box spaces")):
-        eh = ex_sub.add_parser(name, help=text)
-        add_config_flags(eh, ExpertConfig, fixed=fixed)
-        eh.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-        eh.set_defaults(func=cmd_experts)
-
-
-def _add_train(sub: argparse._SubParsersAction) -> None:
-    """``pomil train ALGO``: a subcommand per learner of the learner table."""
     train = sub.add_parser("train", help="train a learner on demonstrations")
     train_sub = train.add_subparsers(dest="algo", required=True, metavar="ALGO")
-    from pomil.learners import LEARNERS
-
-    for name, learner in LEARNERS.items():
-        if not learner.command:
-            continue
-        tp = train_sub.add_parser(name, help=learner.help)
-        add_config_flags(tp, learner.config, fixed=learner.fixed or None)
-        tp.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-        tp.set_defaults(func=cmd_train)
+    commands = [(ex_sub, "hopper", f"{HOPPER_ID} forward or backward", ExpertConfig,
+                 {"demos": "", "env_id": HOPPER_ID}, cmd_experts),
+                (ex_sub, "train", "any Gymnasium id (--env-id) with 1-D Box spaces", ExpertConfig, {"demos": ""},
+                 cmd_experts)]
+    commands += [(train_sub, name, learner.help, learner.config, learner.fixed or None, cmd_train)
+                 for name, learner in LEARNERS.items() if learner.command]
+    for parent, name, text, cls, fixed, func in commands:
+        p = parent.add_parser(name, help=text)
+        add_config_flags(p, cls, fixed=fixed)
+        p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+        p.set_defaults(func=func)
 
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
-    """``pomil evaluate``."""
     ev = sub.add_parser("evaluate",
                         help="roll a checkpoint out: mode metrics (circles) or per-task scores (other tasks)")
     ev.add_argument("checkpoint", help="checkpoint.pt (or its run directory)")
@@ -576,7 +554,6 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_plot(sub: argparse._SubParsersAction) -> None:
-    """``pomil plot``."""
     pl = sub.add_parser("plot", help="Figure-1-style trajectories: experts and policies coloured by code")
     pl.add_argument("checkpoints", nargs="*", help="checkpoints to roll out, one panel each")
     pl.add_argument("--demos", help="demonstrations .npz: adds a panel of expert trajectories coloured by mode")
@@ -588,7 +565,6 @@ def _add_plot(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_sweep(sub: argparse._SubParsersAction) -> None:
-    """``pomil sweep``."""
     from pomil.sweep import SweepConfig
 
     sw = sub.add_parser("sweep", help="one training config over seeds and a grid of settings, in parallel on Ray")
@@ -625,13 +601,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p.add_argument("--version", action="version", version=f"pomil {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _add_demos(sub)
-    _add_experts(sub)
-    _add_train(sub)
-    _add_evaluate(sub)
-    _add_plot(sub)
-    _add_sweep(sub)
-    _add_reproduce(sub)
+    for add in (_add_demos, _add_training, _add_evaluate, _add_plot, _add_sweep, _add_reproduce):
+        add(sub)
     return p
 
 

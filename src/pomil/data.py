@@ -79,20 +79,16 @@ class Demonstrations:
         if bounds.size < 2:
             raise DataError("episode_bounds", "expected at least one episode, got zero")
         if bounds[0] != 0 or bounds[-1] != obs.shape[0]:
-            raise DataError(
-                "episode_bounds",
-                f"expected to start at 0 and end at {obs.shape[0]} (the number of steps), "
-                f"got {bounds[0]}..{bounds[-1]}",
-            )
+            raise DataError("episode_bounds", f"expected to start at 0 and end at {obs.shape[0]} (the number of "
+                                              f"steps), got {bounds[0]}..{bounds[-1]}")
         if np.any(np.diff(bounds) <= 0):
             raise DataError("episode_bounds", "expected strictly increasing bounds (no empty episodes)")
         n_ep = bounds.size - 1
         if self.labels is not None:
             labels = np.asarray(self.labels)
             if labels.shape != (n_ep,) or not np.issubdtype(labels.dtype, np.integer):
-                raise DataError("labels",
-                                f"expected ({n_ep},) integers (one per episode), got shape {labels.shape} dtype "
-                                f"{labels.dtype}")
+                raise DataError("labels", f"expected ({n_ep},) integers (one per episode), got shape {labels.shape} "
+                                          f"dtype {labels.dtype}")
             object.__setattr__(self, "labels", labels.astype(np.int64))
         if self.states is not None:
             states = np.asarray(self.states)
@@ -135,52 +131,39 @@ class Demonstrations:
         """These episodes (indices, in the order given), with their labels and states."""
         steps = np.concatenate([np.arange(self.episode_bounds[i], self.episode_bounds[i + 1]) for i in episodes])
         bounds = np.concatenate([[0], np.cumsum(self.episode_lengths[list(episodes)])])
-        pick = lambda a: None if a is None else a[steps]  # noqa: E731
         labels = None if self.labels is None else self.labels[list(episodes)]
-        return Demonstrations(self.observations[steps], self.actions[steps], bounds, labels, pick(self.states),
+        states = None if self.states is None else self.states[steps]
+        return Demonstrations(self.observations[steps], self.actions[steps], bounds, labels, states,
                               dict(self.metadata))
 
     def padded(self, device: torch.device | str = "cpu") -> PaddedEpisodes:
         """All episodes as time-major (T_max, E, ...) tensors with a validity mask."""
         lengths = self.episode_lengths
-        t_max = int(lengths.max())
-        step = np.arange(t_max)[:, None]
+        step = np.arange(int(lengths.max()))[:, None]
         mask = step < lengths[None, :]
         rows = np.where(mask, self.episode_bounds[:-1][None, :] + step, 0)
         obs = np.where(mask[..., None], self.observations[rows], 0.0)
         act = np.where(mask[..., None], self.actions[rows], 0.0)
-        return PaddedEpisodes(
-            observations=torch.as_tensor(obs, dtype=torch.float32, device=device),
-            actions=torch.as_tensor(act, dtype=torch.float32, device=device),
-            mask=torch.as_tensor(mask, device=device),
-        )
+        return PaddedEpisodes(torch.as_tensor(obs, dtype=torch.float32, device=device),
+                              torch.as_tensor(act, dtype=torch.float32, device=device),
+                              torch.as_tensor(mask, device=device))
 
     def check_compatible(self, obs_dim: int, act_dim: int, source: str | None = None) -> None:
         """Raise a DataError unless the sizes match an environment's."""
-        try:
-            if self.obs_dim != obs_dim:
-                raise DataError("observations", f"expected obs_dim {obs_dim} for this environment, got {self.obs_dim}")
-            if self.act_dim != act_dim:
-                raise DataError("actions", f"expected act_dim {act_dim} for this environment, got {self.act_dim}")
-        except DataError as err:
-            raise err.with_source(source) if source else err from None
+        if self.obs_dim != obs_dim:
+            raise DataError("observations", f"expected obs_dim {obs_dim} for this environment, got {self.obs_dim}",
+                            source)
+        if self.act_dim != act_dim:
+            raise DataError("actions", f"expected act_dim {act_dim} for this environment, got {self.act_dim}", source)
 
     # -------------------------------------------------------------------- I/O
     def save(self, path: str | Path) -> None:
         """Write atomically: a temporary file in the same folder, then rename."""
-        path = Path(path)
-        arrays: dict[str, np.ndarray] = {
-            "observations": self.observations,
-            "actions": self.actions,
-            "episode_bounds": self.episode_bounds,
-            "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
-            "metadata": np.array(json.dumps(self.metadata)),
-        }
-        if self.labels is not None:
-            arrays["labels"] = self.labels
-        if self.states is not None:
-            arrays["states"] = self.states
-        atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+        arrays = {"observations": self.observations, "actions": self.actions, "episode_bounds": self.episode_bounds,
+                  "format_version": np.array(FORMAT_VERSION, dtype=np.int64),
+                  "metadata": np.array(json.dumps(self.metadata))}
+        arrays.update({name: getattr(self, name) for name in ("labels", "states") if getattr(self, name) is not None})
+        atomic_write(Path(path), lambda f: np.savez_compressed(f, **arrays))
 
     @classmethod
     def load(cls, path: str | Path) -> Demonstrations:
@@ -198,21 +181,19 @@ class Demonstrations:
                     if required not in names:
                         raise DataError(required, "missing from the archive", src)
                 values: dict[str, Any] = {}
-                for name in _ARRAYS:
-                    if name in names:
-                        try:
-                            values[name] = archive[name]
-                        except ValueError as err:
-                            if "allow_pickle" in str(err):
-                                raise DataError(name, "holds pickled Python objects; expected a numeric "
-                                                      "array", src) from None
-                            raise DataError(name, f"unreadable ({err})", src) from None
+                for name in [n for n in _ARRAYS if n in names]:
+                    try:
+                        values[name] = archive[name]
+                    except ValueError as err:
+                        if "allow_pickle" in str(err):
+                            raise DataError(name, "holds pickled Python objects; expected a numeric array",
+                                            src) from None
+                        raise DataError(name, f"unreadable ({err})", src) from None
                 metadata: dict[str, Any] = {}
                 if "metadata" in names:
                     try:
-                        raw = archive["metadata"]
-                        metadata = json.loads(str(raw))
-                    except (ValueError, json.JSONDecodeError):
+                        metadata = json.loads(str(archive["metadata"]))
+                    except ValueError:  # json.JSONDecodeError too
                         raise DataError("metadata", "expected a JSON string", src) from None
                     if not isinstance(metadata, dict):
                         raise DataError("metadata", "expected a JSON object", src)
@@ -238,10 +219,8 @@ class PaddedEpisodes:
     def __post_init__(self) -> None:
         t, e = self.mask.shape
         if self.observations.shape[:2] != (t, e) or self.actions.shape[:2] != (t, e):
-            raise ValueError(
-                f"padded shapes disagree: obs {tuple(self.observations.shape)}, "
-                f"actions {tuple(self.actions.shape)}, mask {tuple(self.mask.shape)}"
-            )
+            raise ValueError(f"padded shapes disagree: obs {tuple(self.observations.shape)}, "
+                             f"actions {tuple(self.actions.shape)}, mask {tuple(self.mask.shape)}")
 
     def select(self, idx: torch.Tensor) -> PaddedEpisodes:
         return PaddedEpisodes(self.observations[:, idx], self.actions[:, idx], self.mask[:, idx])
@@ -278,8 +257,7 @@ def atomic_write(path: Path, write) -> None:
     ends in a one-line PomilError that says so.
     """
     path = Path(path)
-    tmp = None
-    rec = None
+    tmp = rec = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -307,7 +285,7 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
     Returns (env_id, env_kwargs) from the metadata; ``metadata.observation_mask``
     (indices of the observed entries, or null) is checked against the env.
     """
-    from pomil.envs import env_dims
+    from pomil.envs import env_dims, state_dim
 
     env_id = demos.metadata.get("env_id")
     kwargs = demos.metadata.get("env_kwargs") or {}
@@ -330,14 +308,9 @@ def check_demos_env(demos: Demonstrations, source: str) -> tuple[str, dict[str, 
         except ValueError as err:
             raise DataError("metadata.observation_mask", str(err), source) from None
     demos.check_compatible(obs_dim, act_dim, source)
-    if demos.states is not None:
-        from pomil.envs import state_dim
-
-        want = state_dim(env_id, kwargs)
-        if demos.states.shape[1] != want:
-            raise DataError("states",
-                            f"expected {want} columns (the full state of {env_id}), got {demos.states.shape[1]}",
-                            source)
+    if demos.states is not None and demos.states.shape[1] != (want := state_dim(env_id, kwargs)):
+        raise DataError("states", f"expected {want} columns (the full state of {env_id}), got {demos.states.shape[1]}",
+                        source)
     return env_id, kwargs
 
 

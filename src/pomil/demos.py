@@ -13,10 +13,8 @@ from pomil.envs.locomotion import HOPPER_ID, REWARD_KEYWORDS, task_name
 from pomil.errors import PomilError
 
 
-def record_circles_demos(
-    spec: CirclesSpec, episodes: int, noise_std: float = DEFAULT_EXPERT_NOISE, *, seed: int = 0,
-    radius_range: tuple[float, float] | None = None,
-) -> Demonstrations:
+def record_circles_demos(spec: CirclesSpec, episodes: int, noise_std: float = DEFAULT_EXPERT_NOISE, *, seed: int = 0,
+                         radius_range: tuple[float, float] | None = None) -> Demonstrations:
     """Equal numbers of episodes from every mode's expert, in shuffled order.
 
     Labels (the mode of each episode) and full states (positions) are kept for evaluation only.
@@ -55,19 +53,13 @@ def record_circles_demos(
     T = spec.episode_length
     # (T, E, d) time-major -> episode-major flat rows
     flat = lambda xs: torch.stack(xs, 1).reshape(episodes * T, -1).numpy()  # noqa: E731
-    expert_returns = {str(m): float(ret[modes == m].mean()) for m in range(k)}
     return Demonstrations(
-        observations=flat(observations),
-        actions=flat(actions),
-        episode_bounds=torch.arange(0, episodes * T + 1, T).numpy(),
-        labels=modes.numpy(),
-        states=flat(states),
+        observations=flat(observations), actions=flat(actions),
+        episode_bounds=torch.arange(0, episodes * T + 1, T).numpy(), labels=modes.numpy(), states=flat(states),
         metadata={
-            "env_id": ENV_ID,
-            "env_kwargs": spec.to_dict(),
-            "observation_mask": None,
+            "env_id": ENV_ID, "env_kwargs": spec.to_dict(), "observation_mask": None,
             "source": f"pomil scripted circle experts, noise_std={noise_std}, seed={seed}",
-            "expert_returns": expert_returns,
+            "expert_returns": {str(m): float(ret[modes == m].mean()) for m in range(k)},
             "label_names": [f"mode{m}" for m in range(k)],
             **({} if radii is None else {"radius_range": [float(r1), float(r2)],
                                          "episode_radii": [round(float(r), 6) for r in radii]}),
@@ -103,9 +95,8 @@ def record_expert_demos(expert_path: str, episodes: int, task: str | None = None
         raise PomilError(f"{expert_path}: circle policies are recorded with `pomil demos circles`")
     return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes=episodes,
                           task=task or task_name(expert.env.get("kwargs") or {}), observation_mask=observation_mask,
-                          seed=seed,
-                          reset_seed=seed if reset_seed is None else reset_seed, reference_episodes=reference_episodes,
-                          action_noise=action_noise)
+                          seed=seed, reset_seed=seed if reset_seed is None else reset_seed,
+                          reference_episodes=reference_episodes, action_noise=action_noise)
 
 
 def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, task: str, observation_mask,
@@ -123,7 +114,7 @@ def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, tas
     expert_mask = expert.env.get("observation_mask")
     sim = make_vec_env(env_id, kwargs, episodes, device="cpu").sim
     full = sim.reset(reset_seed)
-    x0 = _x_position(sim)
+    x0 = x_position(sim)
     expert.reset(episodes, seed=seed)
     rec_obs, rec_act, ret, length = [], [], np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
     while not sim.done.all():
@@ -138,7 +129,7 @@ def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, tas
         full, r, _, _ = sim.step(executed)
         ret += r
         length += alive
-    displacement = _x_position(sim) - x0
+    displacement = x_position(sim) - x0
     speed = displacement / (np.maximum(length, 1) * getattr(sim, "dt", np.nan))  # mean x speed per episode, m/s
     sim.close()
     obs_t, act_t = np.stack(rec_obs, 1), np.stack(rec_act, 1)  # (E, T, d)
@@ -148,12 +139,9 @@ def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, tas
         observations=full_obs if mask is None else full_obs[:, mask],
         actions=np.concatenate([act_t[e, :length[e]] for e in range(episodes)]).astype(np.float32),
         episode_bounds=np.concatenate([[0], np.cumsum(length)]).astype(np.int64),
-        labels=np.zeros(episodes, dtype=np.int64),
-        states=full_obs,
+        labels=np.zeros(episodes, dtype=np.int64), states=full_obs,
         metadata={
-            "env_id": env_id,
-            "env_kwargs": kwargs,
-            "observation_mask": mask,
+            "env_id": env_id, "env_kwargs": kwargs, "observation_mask": mask,
             "source": f"pomil expert {expert_path}, deterministic, seed={seed}"
                       + (f", executed with N(0, {action_noise:g}^2) action noise (DART)" if action_noise else ""),
             "label_names": [task],
@@ -166,7 +154,8 @@ def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, tas
     )
 
 
-def _x_position(sim) -> np.ndarray:
+def x_position(sim) -> np.ndarray:
+    """The torso x position of every environment of a MuJoCo simulator; NaN elsewhere."""
     try:
         return sim.x_position
     except AttributeError:  # not MuJoCo: no displacement
@@ -214,13 +203,6 @@ def _episodes_to_take(sources: list[Demonstrations], p: np.ndarray, episodes: in
     return take
 
 
-def _label_index(label_names: list[str], name: str) -> int:
-    """The index of label ``name`` in ``label_names``, appended when new: one label per task across files."""
-    if name not in label_names:
-        label_names.append(name)
-    return label_names.index(name)
-
-
 def _merge_task_metadata(merged: dict[str, dict], weight: dict[str, int], metadata: dict, *, n: int, name: str) -> None:
     """Add one source's per-task metadata (``n`` episodes taken) to ``merged``: its tasks' environment keywords
     (which must agree between files), and each figure as an episode-weighted mean over the files holding the task."""
@@ -254,15 +236,14 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
     if p.shape != (len(sources),) or np.any(~np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
         raise ValueError(f"proportions: expected {len(sources)} non-negative numbers (one per file), got {proportions}")
     p = p / p.sum()
-    first = sources[0].metadata
     _check_mergeable(sources, names)
     take = _episodes_to_take(sources, p, episodes, names)
     rng = np.random.default_rng(seed)
     label_names: list[str] = []
-    merged_md: dict[str, dict] = {"tasks": {}, "expert_returns": {}, "expert_displacement": {}, "expert_speed": {},
-                                  "still_returns": {}}
+    merged_md: dict[str, dict] = {k: {} for k in ("tasks", "expert_returns", "expert_displacement", "expert_speed",
+                                                  "still_returns")}
     weight: dict[str, int] = {}
-    pieces_obs, pieces_act, pieces_states, lengths, labels = [], [], [], [], []
+    parts, labels = [], []
     for d, n, name in zip(sources, take, names, strict=True):
         if n == 0:
             continue
@@ -270,33 +251,24 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
         chosen = (np.arange(d.num_episodes) if n == d.num_episodes
                   else np.sort(rng.choice(d.num_episodes, n, replace=False)))
         own = d.metadata.get("label_names") or []
-        src_labels = d.labels if d.labels is not None else np.zeros(d.num_episodes, dtype=np.int64)
-        for e in chosen:
-            lo, hi = d.episode_bounds[e], d.episode_bounds[e + 1]
-            lab = int(src_labels[e])
-            labels.append(_label_index(label_names, own[lab] if lab < len(own) else f"{name} label {lab}"))
-            pieces_obs.append(d.observations[lo:hi])
-            pieces_act.append(d.actions[lo:hi])
-            if d.states is not None:
-                pieces_states.append(d.states[lo:hi])
-            lengths.append(int(hi - lo))
+        for lab in (d.labels[chosen] if d.labels is not None else np.zeros(n, dtype=np.int64)).tolist():
+            label = own[lab] if lab < len(own) else f"{name} label {lab}"
+            if label not in label_names:  # one label per task across files
+                label_names.append(label)
+            labels.append(label_names.index(label))
+        parts.append(d.subset(chosen))
         _merge_task_metadata(merged_md, weight, d.metadata, n=int(n), name=name)
-    order = rng.permutation(len(lengths))
-    bounds = np.concatenate([[0], np.cumsum([lengths[i] for i in order])])
-    metadata = {**first, **{k: v for k, v in merged_md.items() if v},
-                "label_names": label_names,
+    metadata = {**sources[0].metadata, **{k: v for k, v in merged_md.items() if v}, "label_names": label_names,
                 "source": "merge of " + "; ".join(f"{n} episodes of {name}"
                                                   for name, n in zip(names, take, strict=True)),
                 "merged_from": [{"file": name, "episodes": int(n), "source": d.metadata.get("source")}
                                 for d, n, name in zip(sources, take, names, strict=True)]}
-    return Demonstrations(
-        observations=np.concatenate([pieces_obs[i] for i in order]),
-        actions=np.concatenate([pieces_act[i] for i in order]),
-        episode_bounds=bounds.astype(np.int64),
-        labels=np.asarray(labels, dtype=np.int64)[order],
-        states=np.concatenate([pieces_states[i] for i in order]) if pieces_states else None,
-        metadata=metadata,
-    )
+    pooled = Demonstrations(np.concatenate([p.observations for p in parts]),
+                            np.concatenate([p.actions for p in parts]),
+                            np.concatenate([[0], np.cumsum(np.concatenate([p.episode_lengths for p in parts]))]),
+                            np.asarray(labels, dtype=np.int64),
+                            None if parts[0].states is None else np.concatenate([p.states for p in parts]), metadata)
+    return pooled.subset(rng.permutation(len(labels)))
 
 
 def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", *, seed: int = 0,
@@ -315,12 +287,11 @@ def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting
             raise PomilError(f"{path}: expected a Hopper expert on the full 11-number observation, got obs_dim "
                              f"{expert.obs_dim}")
         recordings.append(_record_policy(expert, path, hopper_kwargs(task, setting), episodes=episodes_per_task,
-                                         task=task,
-                                         observation_mask=observation_mask, seed=seed, reset_seed=seed + 1000 * j,
-                                         reference_episodes=reference_episodes, action_noise=action_noise))
+                                         task=task, observation_mask=observation_mask, seed=seed,
+                                         reset_seed=seed + 1000 * j, reference_episodes=reference_episodes,
+                                         action_noise=action_noise))
     demos = merge_demos(recordings, seed=seed, names=list(experts.values()))
-    return Demonstrations(demos.observations, demos.actions, demos.episode_bounds, demos.labels, demos.states,
-                          {**demos.metadata, "setting": setting})
+    return replace(demos, metadata={**demos.metadata, "setting": setting})
 
 
 def _zero_action_return(env_id: str, env_kwargs: dict, episodes: int, seed: int) -> float:

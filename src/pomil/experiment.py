@@ -36,6 +36,7 @@ on other seeds.  Spec keys::
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import itertools
 import json
@@ -51,11 +52,13 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+import torch
 
 from pomil.config import check_fields, load_config_file, option, resolved, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
+from pomil.parallel import run_jobs, usable_cpus
 from pomil.training import write_json
 
 SPEC_DIR = Path(__file__).parent / "experiments"
@@ -189,8 +192,7 @@ def spec_from_dict(data: dict[str, Any], name: str, source: str) -> Spec:
     _known(data, _SPEC_KEYS, source)
     demos = _demos(data.get("demos"), f"{source}: key 'demos'") if "demos" in data else None
     rows = [_row({"learner": n}, demos, f"{source}: learners") for n in _list(data, "learners", source)]
-    for i, table in enumerate(_list(data, "rows", source)):
-        rows.append(_row(table, demos, f"{source}: rows[{i}]"))
+    rows += [_row(table, demos, f"{source}: rows[{i}]") for i, table in enumerate(_list(data, "rows", source))]
     if not rows:
         raise PomilError(f"{source}: no rows (give 'learners' or [[rows]])")
     rows = expand_grid(rows, data.get("grid", {}), source)
@@ -298,25 +300,23 @@ def run_one(job: RunJob) -> dict[str, Any]:
     """Train one run and evaluate it; ``run_dir/result.json`` is written last (the run's "finished" mark)."""
     from pomil.api import TrainedPolicy
 
-    learner, values, run_dir, seed = job.learner, job.values, job.run_dir, job.seed
-    evaluation, progress, resume = job.evaluation, job.progress, job.resume
-    out = Path(run_dir)
+    out, seed = Path(job.run_dir), job.seed
     done = out / "result.json"
-    if resume and finished(out, values):
+    if job.resume and finished(out, job.values):
         return json.loads(done.read_text())
-    trainer = LEARNERS[learner]
-    cfg = resolved(trainer.make_config({**values, "out": run_dir, "seed": seed, "progress": progress},
-                                       source=f"run {run_dir}"))  # the results record the preset run
-    again = resume and (out / "checkpoint.pt").exists()
+    trainer = LEARNERS[job.learner]
+    cfg = resolved(trainer.make_config({**job.values, "out": job.run_dir, "seed": seed, "progress": job.progress},
+                                       source=f"run {job.run_dir}"))  # the results record the preset run
+    again = job.resume and (out / "checkpoint.pt").exists()
     if again:
-        print(f"{run_dir}: resuming from its checkpoint", file=sys.stderr, flush=True)
+        print(f"{job.run_dir}: resuming from its checkpoint", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     ckpt = trainer.train(cfg, resume=again)
     wall = time.perf_counter() - t0
     kind, metrics = evaluate_run(TrainedPolicy.load(ckpt), Demonstrations.load(cfg.demos), seed, run_dir=out,
-                                 evaluation=evaluation)
+                                 evaluation=job.evaluation)
     metrics.update(checkpoint=str(ckpt), train_seed=seed)
-    result = {"learner": learner, "seed": seed, "settings": values, "wall_s": wall, "kind": kind,
+    result = {"learner": job.learner, "seed": seed, "settings": job.values, "wall_s": wall, "kind": kind,
               "metrics": metrics, "config": {k: v for k, v in to_dict(cfg).items() if k not in _RUN_FIELDS}}
     write_json(done, result)
     return result
@@ -338,11 +338,11 @@ def evaluate_run(policy: Any, demos: Demonstrations, seed: int, *, run_dir: Path
                  evaluation: dict[str, int]) -> tuple[str, dict[str, Any]]:
     """(kind, metrics with ``success``) of a trained policy; circles rollouts go to ``run_dir/rollouts.npz``."""
     from pomil.envs import evaluation_kind
+    from pomil.eval.circles import evaluate_circles, evaluate_code_radius
+    from pomil.eval.tasks import evaluate_tasks, reference_of
 
     kind = evaluation_kind(policy.env.get("id", ""), demos.metadata)
     if kind == "circles" and policy.code_dim:
-        from pomil.eval.circles import evaluate_code_radius
-
         metrics, roll = evaluate_code_radius(policy, evaluation["code_values"], evaluation["episodes_per_value"],
                                              seed=1000 + seed)
         _save_rollouts(run_dir, roll)
@@ -350,14 +350,10 @@ def evaluate_run(policy: Any, demos: Demonstrations, seed: int, *, run_dir: Path
                        warm_start_spearman=_warm_start_value(run_dir / "metrics.csv", "eval/spearman"))
         return "code-radius", metrics
     if kind == "circles":
-        from pomil.eval.circles import evaluate_circles
-
         metrics, roll = evaluate_circles(policy, evaluation["episodes_per_code"], seed=1000 + seed)
         _save_rollouts(run_dir, {"positions": roll["positions"], "groups": roll["codes"]})
         return "circles", {**metrics, "success": modes_success(metrics)}
     if kind == "tasks":
-        from pomil.eval.tasks import evaluate_tasks, reference_of
-
         metrics = evaluate_tasks(policy, reference_of(demos.metadata), evaluation["episodes_per_code"],
                                  seed=1000 + seed)
         return "tasks", {**metrics, "success": tasks_success(metrics),
@@ -381,8 +377,6 @@ def tasks_success(m: dict[str, Any]) -> bool:
 
 
 def _csv_rows(path: Path) -> list[dict[str, str]]:
-    import csv
-
     if not path.exists():
         return []
     with open(path, newline="") as f:
@@ -424,8 +418,6 @@ class Execution:
 def run_experiment(spec: Spec, how: Execution) -> dict[str, Any]:
     """Every (row, seed) run of ``spec``, then metrics.json, table.md, figure.png (and rollouts.npz,
     policies/) in ``how.out``."""
-    from pomil.parallel import run_jobs, usable_cpus
-
     t_start = time.perf_counter()
     for demos in dict.fromkeys(r.demos for r in spec.rows):
         demos.ensure()
@@ -448,8 +440,7 @@ def run_experiment(spec: Spec, how: Execution) -> dict[str, Any]:
         print(f"[{n}/{total}] {r.name}: {line} ({r.wall_s:.0f} s)", flush=True)
 
     done = run_jobs(run_one, [(job,) for job in jobs], names, ray=how.ray, address=how.address or None,
-                    cpus_per_job=how.cpus_per_run,
-                    capture_errors=how.keep_going, on_done=report,
+                    cpus_per_job=how.cpus_per_run, capture_errors=how.keep_going, on_done=report,
                     costs=[LEARNERS[row.learner].cost for row, _ in keys], workers=workers)
     results = {(row.name, seed): r for (row, seed), r in zip(keys, done, strict=True)}
     data = collect(spec, results)
@@ -480,8 +471,6 @@ def _one_line_result(result: dict[str, Any]) -> str:
 
 
 def machine() -> dict[str, str]:
-    import torch
-
     return {"python": sys.version.split()[0], "platform": platform.platform(), "torch": torch.__version__}
 
 
@@ -496,19 +485,15 @@ def collect(spec: Spec, results: dict[tuple[str, int], Any]) -> dict[str, Any]:
             "learner": row.learner, "kind": ok[0]["kind"] if ok else "none", "settings": row.settings,
             "config": ok[0]["config"] if ok else {}, "demos": row.demos.file,
             "runs": [r["metrics"] for r in ok], "wall_s": [r["wall_s"] for r in ok]}
-    _add_reference(data, spec)
-    return summarise(data)
-
-
-def _add_reference(data: dict[str, Any], spec: Spec) -> None:
-    """Tasks: the first tasks row's demonstrations' reference (tasks, expert and zero-action returns)."""
-    from pomil.eval.tasks import reference_of
-
+    # tasks: the first tasks row's demonstrations' reference (tasks, expert and zero-action returns)
     row = next((spec.rows[i] for i, r in enumerate(data["rows"].values()) if r["kind"] == "tasks"), None)
     if row is not None:
+        from pomil.eval.tasks import reference_of
+
         md = Demonstrations.load(row.demos.file).metadata
         data.update(reference=reference_of(md, row.demos.file), env_id=md.get("env_id"),
                     setting=md.get("setting", ""))
+    return summarise(data)
 
 
 def summarise(data: dict[str, Any]) -> dict[str, Any]:
@@ -522,20 +507,16 @@ def summarise(data: dict[str, Any]) -> dict[str, Any]:
             r["summary"] = {k: _mean_std([run[k] for run in runs]) for k in SUMMARY_KEYS}
         elif r["kind"] == "code-radius":
             r["summary"] = {"abs_spearman": _mean_std(np.abs([run["spearman"] for run in runs]))}
-        elif r["kind"] == "tasks":
-            r["summary"] = task_summary(runs, list(data["reference"]["tasks"]))
+        elif r["kind"] == "tasks":  # the speed figures too where every run has them
+            metrics = METRICS + (SPEED_METRICS if all("behaviour" in run for run in runs) else ())
+            r["summary"] = {t: {m: _mean_std([run["tasks"][t][m] for run in runs]) for m in metrics}
+                            for t in data["reference"]["tasks"]}
     return data
 
 
 def _mean_std(x: Any) -> list[float]:
     """[mean, std] over seeds (population std: 0 for one seed)."""
     return [float(np.mean(x)), float(np.std(x))]
-
-
-def task_summary(runs: list[dict[str, Any]], tasks: list[str]) -> dict[str, dict[str, list[float]]]:
-    """[mean, std] over seeds of each task's figures (and its speed figures where every run has them)."""
-    metrics = METRICS + (SPEED_METRICS if all("behaviour" in r for r in runs) else ())
-    return {t: {m: _mean_std([r["tasks"][t][m] for r in runs]) for m in metrics} for t in tasks}
 
 
 # ================================================================ the files
@@ -581,9 +562,9 @@ def draw_figure(data: dict[str, Any], rollouts_path: Path, path: Path) -> bool:
     kinds = [r["kind"] for r in data["rows"].values() if r["runs"]]
     if not kinds:
         return False
-    if kinds[0] == "tasks":
-        from pomil.eval.plots import learning_curves
+    from pomil.eval.plots import code_radius_figure, figure1, learning_curves
 
+    if kinds[0] == "tasks":
         rows = {n: {"curves": [run["curve"] for run in r["runs"]], "summary": r["summary"]}
                 for n, r in data["rows"].items() if r["kind"] == "tasks"}
         learning_curves({**data, "tasks": list(data["reference"]["tasks"]), "learners": rows}, path)
@@ -591,13 +572,9 @@ def draw_figure(data: dict[str, Any], rollouts_path: Path, path: Path) -> bool:
     if not rollouts_path.exists():
         return False
     if kinds[0] == "code-radius":
-        from pomil.eval.plots import code_radius_figure
-
         row = next(n for n, r in data["rows"].items() if r["kind"] == "code-radius")
         code_radius_figure(rollouts_path, path, row=row)
         return True
-    from pomil.eval.plots import figure1
-
     with np.load(rollouts_path, allow_pickle=False) as r:
         names = [n for n in ["experts", *data["rows"]] if f"{n}/positions" in r.files]
         figure1([(n, r[f"{n}/positions"], r[f"{n}/groups"], "mode" if n == "experts" else "code") for n in names],
@@ -869,7 +846,6 @@ def reproduce(spec_name: str, opts: ReproduceOptions) -> dict[str, Any]:
         episodes_per_code=opts.episodes_per_code or spec.episodes_per_code, overrides=overrides,
         policy_rows=kept, policies=spec.policies if kept or not spec.policy_rows else "none"))
     out = Path(opts.out or f"runs/results/{spec.name}")
-    how = Execution(out=out, runs=Path(opts.runs or f"runs/{out.name if opts.out else spec.name}"),
-                    jobs=opts.jobs, ray=opts.ray, address=opts.ray_address, resume=opts.resume,
-                    progress=opts.progress)
-    return run_experiment(spec, how)
+    runs = Path(opts.runs or f"runs/{out.name if opts.out else spec.name}")
+    return run_experiment(spec, Execution(out=out, runs=runs, jobs=opts.jobs, ray=opts.ray, address=opts.ray_address,
+                                          resume=opts.resume, progress=opts.progress))

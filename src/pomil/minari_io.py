@@ -63,9 +63,8 @@ def _datasets_path(root: str | Path | None) -> Iterator[None]:
     try:
         yield
     finally:
-        if old is None:
-            os.environ.pop("MINARI_DATASETS_PATH", None)
-        else:
+        os.environ.pop("MINARI_DATASETS_PATH", None)
+        if old is not None:
             os.environ["MINARI_DATASETS_PATH"] = old
 
 
@@ -80,6 +79,7 @@ def export_minari(demos: Demonstrations, dataset_id: str, root: str | Path | Non
 
     minari = _minari()  # first: without the extra, its one-line hint rather than an import error
     from minari.data_collector import EpisodeBuffer
+    from minari.dataset.minari_storage import MinariStorage
 
     md = demos.metadata
     env_id, kwargs = md.get("env_id"), dict(md.get("env_kwargs") or {})
@@ -102,8 +102,7 @@ def export_minari(demos: Demonstrations, dataset_id: str, root: str | Path | Non
                 lo, hi = demos.episode_bounds[e], demos.episode_bounds[e + 1]
                 obs = np.concatenate([full[lo:hi], full[hi - 1:hi]]).astype(env.observation_space.dtype)
                 n = int(hi - lo)
-                ended = np.zeros(n, dtype=bool)
-                ended[-1] = True
+                ended = np.arange(n) == n - 1
                 early = limit is None or n < limit
                 label = -1 if demos.labels is None else int(demos.labels[e])
                 buffers.append(EpisodeBuffer(
@@ -115,7 +114,7 @@ def export_minari(demos: Demonstrations, dataset_id: str, root: str | Path | Non
                     dataset_id, buffers, env=env.spec, eval_env=env.spec, algorithm_name="pomil experts",
                     author=author, author_email="", code_permalink="https://github.com/pomil/pomil",
                     description=description or f"pomil demonstrations: {md.get('source', '')}")
-                _set_metadata(target, {METADATA_KEY: json.dumps(md)})
+                MinariStorage.read(target / "data").update_metadata({METADATA_KEY: json.dumps(md)})
             except BaseException:
                 shutil.rmtree(target, ignore_errors=True)  # nothing half-written stays
                 raise
@@ -134,12 +133,6 @@ def _check_id(dataset_id: str) -> None:
                          "pomil/hopper-v0)") from None
     if version is None:
         raise PomilError(f"export: {dataset_id!r} needs a version (expected [namespace/]name-vN, e.g. pomil/hopper-v0)")
-
-
-def _set_metadata(dataset_path: Path, values: dict[str, Any]) -> None:
-    from minari.dataset.minari_storage import MinariStorage
-
-    MinariStorage.read(dataset_path / "data").update_metadata(values)
 
 
 def _foreign_metadata(dataset: Any, dataset_id: str, meta: dict[str, Any],
@@ -202,10 +195,7 @@ def import_minari(dataset_id: str, root: str | Path | None = None,
     if has_labels and "label_names" not in metadata:
         metadata["label_names"] = [f"label{i}" for i in range(max(labels) + 1)]
     return Demonstrations(
-        observations=full if mask is None else full[:, mask],
-        actions=np.concatenate(act).astype(np.float32),
+        observations=full if mask is None else full[:, mask], actions=np.concatenate(act).astype(np.float32),
         episode_bounds=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
         labels=np.asarray(labels, dtype=np.int64) if has_labels else None,
-        states=full if mask is not None else None,
-        metadata=metadata,
-    )
+        states=full if mask is not None else None, metadata=metadata)

@@ -20,6 +20,7 @@ import time
 import traceback
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
@@ -101,17 +102,20 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
     if costs is not None and len(costs) != total:
         raise ValueError(f"costs: {len(costs)} values for {total} jobs")
     results: list[JobResult | None] = [None] * total
+    order = submission_order(costs) if costs is not None else range(total)
 
     def finish(i: int, result: JobResult) -> None:
         results[i] = result
         if on_done is not None:
             on_done(result, sum(r is not None for r in results), total)
 
-    if not ray and workers > 1 and total > 1:
-        return _run_local(fn, jobs, names, workers=min(workers, total), threads=max(1, int(cpus_per_job)),
-                          capture_errors=capture_errors, costs=costs,
-                          finish=finish, results=results)
-    if not ray:
+    if ray:
+        _run_ray(fn, jobs, names, address=address, cpus_per_job=cpus_per_job, capture_errors=capture_errors,
+                 order=order, finish=finish)
+    elif workers > 1 and total > 1:
+        _run_local(fn, jobs, names, workers=min(workers, total), threads=max(1, int(cpus_per_job)),
+                   capture_errors=capture_errors, order=order, finish=finish)
+    else:
         for i, (job, name) in enumerate(zip(jobs, names, strict=True)):
             try:
                 value, wall = _call(fn, job, None)
@@ -120,18 +124,13 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
                 if not capture_errors:
                     raise
                 finish(i, JobResult(name, error=_one_line(err), details=traceback.format_exc()))
-        return results  # type: ignore[return-value]
-
-    return _run_ray(fn, jobs, names, address=address, cpus_per_job=cpus_per_job, capture_errors=capture_errors,
-                    costs=costs, finish=finish, results=results)
+    return results  # type: ignore[return-value]
 
 
 def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], *, address: str | None,
-             cpus_per_job: float, capture_errors: bool, costs: Sequence[float] | None,
-             finish: Callable[[int, JobResult], None], results: list[JobResult | None]) -> list[JobResult]:
-    """The jobs as Ray tasks, costliest first (``address``: an existing cluster; None starts a local Ray here and
-    stops it afterwards)."""
-    total = len(jobs)
+             cpus_per_job: float, capture_errors: bool, order: Sequence[int],
+             finish: Callable[[int, JobResult], None]) -> None:
+    """The jobs as Ray tasks, submitted in ``order`` (see :func:`run_jobs`)."""
     ray_lib = require_ray()
     started = not ray_lib.is_initialized()
     if started:
@@ -144,7 +143,6 @@ def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
     threads = max(1, int(cpus_per_job))
     task = ray_lib.remote(_call).options(num_cpus=cpus_per_job, max_retries=1, retry_exceptions=False)
     t_submit = time.perf_counter()
-    order = submission_order(costs) if costs is not None else range(total)
     pending = {task.remote(fn, tuple(jobs[i]), threads): i for i in order}
     try:
         while pending:
@@ -168,18 +166,14 @@ def _run_ray(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str]
             ray_lib.cancel(ref, force=True)
         if started:
             ray_lib.shutdown()
-    return results  # type: ignore[return-value]
 
 
 def _run_local(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[str], *, workers: int, threads: int,
-               capture_errors: bool, costs: Sequence[float] | None, finish: Callable[[int, JobResult], None],
-               results: list[JobResult | None]) -> list[JobResult]:
-    """The jobs in ``workers`` spawned processes (spawn, not fork: torch's threads do not survive a fork)."""
-    from concurrent.futures.process import BrokenProcessPool
-
+               capture_errors: bool, order: Sequence[int], finish: Callable[[int, JobResult], None]) -> None:
+    """The jobs in ``workers`` spawned processes (spawn, not fork: torch's threads do not survive a fork), submitted
+    in ``order``."""
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
     t_submit = time.perf_counter()
-    order = submission_order(costs) if costs is not None else range(len(jobs))
     pending: dict[Future, int] = {pool.submit(_call, fn, tuple(jobs[i]), threads): i for i in order}
     clean = False
     try:
@@ -197,9 +191,8 @@ def _run_local(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[st
                 except Exception as err:
                     if not capture_errors:
                         raise
-                    finish(i, JobResult(names[i], error=_one_line(err), details="".join(
-                        traceback.format_exception(type(err), err, err.__traceback__)),
-                        wall_s=time.perf_counter() - t_submit))
+                    finish(i, JobResult(names[i], error=_one_line(err), wall_s=time.perf_counter() - t_submit,
+                                        details="".join(traceback.format_exception(err))))
         clean = True
     finally:
         if clean:
@@ -209,4 +202,3 @@ def _run_local(fn: Callable[..., Any], jobs: Sequence[tuple], names: Sequence[st
             pool.shutdown(wait=False, cancel_futures=True)
             for process in processes:
                 process.terminate()
-    return results  # type: ignore[return-value]

@@ -32,8 +32,7 @@ def rollout_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: i
     if codes is None and policy.code_dim:
         raise PomilError("this policy has continuous codes: pass the codes to roll out (see evaluate_code_radius)")
     if codes is None:
-        k = max(policy.num_codes, 1)
-        codes = np.repeat(np.arange(k), episodes_per_code)
+        codes = np.repeat(np.arange(max(policy.num_codes, 1)), episodes_per_code)
     n = len(codes)
     env = CirclesVecEnv(spec, n)
     obs = env.reset()
@@ -46,21 +45,16 @@ def rollout_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: i
     return {"positions": torch.stack(positions, 1).numpy(), "codes": codes, "returns": ret.numpy()}
 
 
-def evaluate_circles(
-    policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0, *, deterministic: bool = False,
-    threshold: float = DEFAULT_NONE_THRESHOLD,
-) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def evaluate_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0, *, deterministic: bool = False,
+                     threshold: float = DEFAULT_NONE_THRESHOLD) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Mode metrics of the policy's rollouts (and the rollouts themselves)."""
     spec = circles_spec_of(policy)
     roll = rollout_circles(policy, episodes_per_code, seed, deterministic=deterministic)
-    modes = classify_modes(roll["positions"], spec, threshold)
-    roll["modes"] = modes
-    metrics = mode_metrics(roll["codes"], modes, max(policy.num_codes, 1), spec.num_modes)
-    metrics.update({
-        "algo": policy.algo, "num_codes": policy.num_codes, "episodes_per_code": episodes_per_code,
-        "deterministic": deterministic, "none_threshold": threshold, "seed": seed,
-        "mean_return": float(roll["returns"].mean()),
-    })
+    roll["modes"] = classify_modes(roll["positions"], spec, threshold)
+    metrics = mode_metrics(roll["codes"], roll["modes"], max(policy.num_codes, 1), spec.num_modes)
+    metrics.update(algo=policy.algo, num_codes=policy.num_codes, episodes_per_code=episodes_per_code,
+                   deterministic=deterministic, none_threshold=threshold, seed=seed,
+                   mean_return=float(roll["returns"].mean()))
     return metrics, roll
 
 
@@ -96,6 +90,5 @@ def evaluate_code_radius(policy: TrainedPolicy, values: int = 9, episodes_per_va
     metrics = {"algo": policy.algo, "code_dim": policy.code_dim, "code_prior": policy.code_prior,
                "values": values, "episodes_per_value": episodes_per_value, "deterministic": deterministic,
                "seed": seed, "spearman": best["spearman"], "spearman_max": best["spearman_max"],
-               "spearman_dim": best["dim"],
-               "radius_covered": best["radius_covered"], "dims": dims}
+               "spearman_dim": best["dim"], "radius_covered": best["radius_covered"], "dims": dims}
     return metrics, first

@@ -24,8 +24,6 @@ def entropy(labels: np.ndarray) -> float:
 
 
 def mutual_information(a: np.ndarray, b: np.ndarray) -> float:
-    a = np.asarray(a)
-    b = np.asarray(b)
     _, ai = np.unique(a, return_inverse=True)
     _, bi = np.unique(b, return_inverse=True)
     joint = np.zeros((ai.max() + 1, bi.max() + 1))
@@ -58,23 +56,15 @@ def mode_metrics(codes: np.ndarray, modes: np.ndarray, num_codes: int, num_modes
         m = modes[codes == c]
         n = max(len(m), 1)
         share = [float((m == k).sum() / n) for k in range(num_modes)]
-        none = float((m == -1).sum() / n)
-        majority = int(np.argmax(share))
-        per_code.append({
-            "code": c, "episodes": int(len(m)), "mode_share": share, "none_share": none,
-            "purity": float(max(share)), "majority_mode": majority,
-        })
+        per_code.append({"code": c, "episodes": int(len(m)), "mode_share": share,
+                         "none_share": float((m == -1).sum() / n), "purity": float(max(share)),
+                         "majority_mode": int(np.argmax(share))})
     covered = {pc["majority_mode"] for pc in per_code if pc["purity"] >= 0.5}
-    overall = [float((modes == k).mean()) for k in range(num_modes)]
-    return {
-        "per_code": per_code,
-        "mean_purity": float(np.mean([pc["purity"] for pc in per_code])),
-        "min_purity": float(np.min([pc["purity"] for pc in per_code])),
-        "modes_covered": len(covered),
-        "nmi": normalized_mutual_info(codes, modes),
-        "overall_mode_share": overall,
-        "overall_none_share": float((modes == -1).mean()),
-    }
+    purity = [pc["purity"] for pc in per_code]
+    return {"per_code": per_code, "mean_purity": float(np.mean(purity)), "min_purity": float(np.min(purity)),
+            "modes_covered": len(covered), "nmi": normalized_mutual_info(codes, modes),
+            "overall_mode_share": [float((modes == k).mean()) for k in range(num_modes)],
+            "overall_none_share": float((modes == -1).mean())}
 
 
 def average_ranks(x: np.ndarray) -> np.ndarray:

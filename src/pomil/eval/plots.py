@@ -13,6 +13,23 @@ from pomil.envs.locomotion import HOPPER_ID
 COLOURS = ["tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive"]
 
 
+def _pyplot():
+    """matplotlib.pyplot on the Agg backend (files only, no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: str | Path, dpi: int, fmt: str | None = None) -> None:
+    """Write ``fig`` to ``path`` atomically (in the format its suffix names unless ``fmt``), then close it."""
+    fmt = fmt or Path(path).suffix.lstrip(".") or "png"
+    atomic_write(Path(path), lambda f: fig.savefig(f, format=fmt, dpi=dpi))
+    _pyplot().close(fig)
+
+
 def _panel(ax, positions: np.ndarray, groups: np.ndarray, *, title: str, group_name: str, max_per_group: int) -> None:
     for g in np.unique(groups):
         sel = np.flatnonzero(groups == g)[:max_per_group]
@@ -29,31 +46,19 @@ def _panel(ax, positions: np.ndarray, groups: np.ndarray, *, title: str, group_n
     ax.legend(fontsize=7, loc="upper right")
 
 
-def figure1(
-    panels: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path: str | Path, max_per_group: int = 20,
-) -> None:
+def figure1(panels: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path: str | Path,
+            max_per_group: int = 20) -> None:
     """One panel per (title, positions (E, T, 2), groups (E,), group name)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.8), squeeze=False)
+    fig, axes = _pyplot().subplots(1, len(panels), figsize=(3.2 * len(panels), 3.8), squeeze=False)
     for ax, (title, pos, groups, name) in zip(axes[0], panels, strict=True):
         _panel(ax, np.asarray(pos), np.asarray(groups), title=title, group_name=name, max_per_group=max_per_group)
     fig.tight_layout()
-    suffix = Path(path).suffix.lstrip(".") or "png"
-    atomic_write(Path(path), lambda f: fig.savefig(f, format=suffix, dpi=120))
-    plt.close(fig)
+    _save(fig, path, 120)
 
 
 def learning_curves(results: dict, path: str | Path) -> None:
     """:func:`curves_figure`, written to ``path`` as a PNG."""
-    import matplotlib.pyplot as plt
-
-    fig = curves_figure(results)
-    atomic_write(Path(path), lambda f: fig.savefig(f, format="png", dpi=110))
-    plt.close(fig)
+    _save(curves_figure(results), path, 110, "png")
 
 
 def curves_figure(results: dict):
@@ -62,15 +67,10 @@ def curves_figure(results: dict):
     learner, a dot at 0 env steps marking its warm start's level (a learner of 0
     iterations is that dot alone), ablations (``pomil.learners.ABLATIONS``) dashed;
     behaviour cloning (no environment steps) as a dotted level."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from pomil.learners import ABLATIONS
 
     tasks = results["tasks"]
-    fig, axes = plt.subplots(1, len(tasks), figsize=(6.5 * len(tasks), 5), squeeze=False)
+    fig, axes = _pyplot().subplots(1, len(tasks), figsize=(6.5 * len(tasks), 5), squeeze=False)
     colours = COLOURS + ["tab:cyan", "tab:gray", "black", "gold"]
     for ax, task in zip(axes[0], tasks, strict=True):
         for i, (name, r) in enumerate(results["learners"].items()):
@@ -106,13 +106,10 @@ def code_radius_figure(rollouts_path: str | Path, path: str | Path, row: str, ma
     fitted radius for every seed of ``row`` (points; lines through each code value's median)."""
     import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     with np.load(rollouts_path, allow_pickle=False) as r:
         data = {k.removeprefix(f"{row}/"): r[k] for k in r.files}
     seeds = sorted({k.split("/")[0] for k in data if k.startswith("seed")}, key=lambda s: int(s[4:]))
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.4))
+    fig, axes = _pyplot().subplots(1, 3, figsize=(14, 4.4))
 
     def paths(ax, positions, values, label, title):
         norm = matplotlib.colors.Normalize(values.min(), values.max())
@@ -149,6 +146,4 @@ def code_radius_figure(rollouts_path: str | Path, path: str | Path, row: str, ma
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    suffix = Path(path).suffix.lstrip(".") or "png"
-    atomic_write(Path(path), lambda f: fig.savefig(f, format=suffix, dpi=110))
-    plt.close(fig)
+    _save(fig, path, 110)

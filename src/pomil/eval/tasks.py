@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from pomil.api import TrainedPolicy
+from pomil.demos import x_position
 from pomil.envs import make_vec_env
 from pomil.errors import PomilError
 
@@ -46,25 +47,17 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
     (steps) and ``speed`` (displacement / duration, m/s; NaN off MuJoCo)."""
     env = make_vec_env(env_id or policy.env["id"], env_kwargs, episodes, device="cpu",
                        observation_mask=observation_mask, seed=seed)
-
-    def x_position() -> np.ndarray:
-        try:
-            return env.sim.x_position
-        except AttributeError:
-            return np.full(episodes, np.nan)
-
     try:
         obs = env.reset()
-        x0 = x_position()
+        x0 = x_position(env.sim)
         policy.reset(episodes, codes if policy.num_codes else None, seed=seed)
-        ret = np.zeros(episodes)
-        length = np.zeros(episodes, dtype=np.int64)
+        ret, length = np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
         while not env.sim.done.all():
             alive = ~env.sim.done
             obs, r, _, _ = env.step(torch.as_tensor(policy.act(obs, deterministic)))
             ret += r.numpy()
             length += alive
-        displacement = x_position() - x0
+        displacement = x_position(env.sim) - x0
         speed = displacement / (np.maximum(length, 1) * getattr(env.sim, "dt", np.nan))
         return {"returns": ret, "displacement": displacement, "length": length, "speed": speed}
     finally:
@@ -74,16 +67,11 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
 def task_scores(returns: np.ndarray, displacement: np.ndarray, reference: dict[str, Any],
                 task: str) -> dict[str, float]:
     """The three figures for mean return and mean displacement on ``task``."""
-    r_exp = float(reference["expert_returns"][task])
-    r_still = float(reference["still_returns"][task])
-    d_exp = float(reference["expert_displacement"][task])
+    r_exp, r_still = float(reference["expert_returns"][task]), float(reference["still_returns"][task])
     direction = float(np.sign(reference["tasks"][task].get("forward_reward_weight", 1.0)))
-    return {
-        "return": float(returns),
-        "normalised_return": float(returns) / r_exp,
-        "progress": (float(returns) - r_still) / (r_exp - r_still),
-        "displacement_ratio": direction * float(displacement) / d_exp,
-    }
+    return {"return": float(returns), "normalised_return": float(returns) / r_exp,
+            "progress": (float(returns) - r_still) / (r_exp - r_still),
+            "displacement_ratio": direction * float(displacement) / float(reference["expert_displacement"][task])}
 
 
 def match_codes(score: np.ndarray) -> list[int]:
@@ -92,11 +80,7 @@ def match_codes(score: np.ndarray) -> list[int]:
     k, j = score.shape
     if k < j:
         return [int(c) for c in score.argmax(axis=0)]
-    best, best_total = None, -np.inf
-    for perm in itertools.permutations(range(k), j):
-        total = sum(score[c, t] for t, c in enumerate(perm))
-        if total > best_total:
-            best, best_total = perm, total
+    best = max(itertools.permutations(range(k), j), key=lambda perm: sum(score[c, t] for t, c in enumerate(perm)))
     return [int(c) for c in best]
 
 
@@ -140,8 +124,7 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
     speeds = []
     for j, task in enumerate(tasks):
         roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed=seed,
-                                  deterministic=deterministic, codes=codes,
-                                  observation_mask=mask)
+                                  deterministic=deterministic, codes=codes, observation_mask=mask)
         speeds.append(roll["speed"])
         for c in range(k):
             sel = codes == c
