@@ -459,7 +459,6 @@ class RunLogger:
         desc: str = "train", key_stats: tuple[str, ...] = (), resume: bool = False,
     ) -> None:
         from torch.utils.tensorboard import SummaryWriter
-        from tqdm.auto import tqdm
 
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -474,10 +473,7 @@ class RunLogger:
         self._fields: list[str] = list(self._rows[0].keys()) if self._rows else []
         self._last_flush = time.monotonic()
         self.writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=start if start > 0 else None)
-        self.bar = tqdm(
-            total=total, initial=start, desc=desc, disable=not progress, dynamic_ncols=True,
-            mininterval=0.5 if sys.stderr.isatty() else 5.0, file=sys.stderr,
-        )
+        self.bar = progress_bar(total, desc, progress, initial=start)
 
     def log(self, iteration: int, stats: dict[str, float]) -> None:
         row = {"iteration": iteration, **{k: float(v) for k, v in stats.items()}}
@@ -520,12 +516,12 @@ def write_json(path: str | Path, obj: Any) -> None:
     atomic_write(Path(path), lambda f: f.write(data))
 
 
-def progress_bar(total: int, desc: str, enabled: bool) -> Any:
-    """A tqdm bar on stderr for a long step before or beside the run loop's own (the warm start, the
-    posterior's warm-up); drawn as the run loop's: every 0.5 s on a terminal, every 5 s otherwise."""
+def progress_bar(total: int, desc: str, enabled: bool, initial: int = 0) -> Any:
+    """A tqdm bar on stderr, the run loop's and that of a long step before or beside it (the warm start, the
+    posterior's warm-up): drawn every 0.5 s on a terminal, every 5 s otherwise."""
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=desc, disable=not enabled, dynamic_ncols=True, file=sys.stderr,
+    return tqdm(total=total, initial=initial, desc=desc, disable=not enabled, dynamic_ncols=True, file=sys.stderr,
                 mininterval=0.5 if sys.stderr.isatty() else 5.0)
 
 

@@ -14,12 +14,9 @@ Per iteration:
 3. **Posterior**: cross-entropy of the episode's code under P(c | b(tau; psi), a_t)
    (continuous codes: -log N(c; mu, sigma) of a diagonal Gaussian, ``pomil.nn.codes``).
 4. **Reward** r_t = norm(f_t) + lambda1 * log P(c | b_t, a_t), where norm
-   standardises the critic term over the batch (zero mean, unit std).  Why:
-   a weight-clipped critic's scores are ~1e-3 and drift in scale as it
-   trains, so without it lambda1 would silently mean something different
-   every iteration; standardised, lambda1 weighs the MI bound against one
-   standard deviation of critic score.  ``normalize_reward=False`` turns it off.
-   GAN critic: the adversarial term is -log(1 - D) = softplus(f).
+   standardises the critic term over the batch, so that lambda1 weighs the MI
+   bound against one standard deviation of critic score (docs/method.md;
+   ``normalize_reward``).  GAN critic: the adversarial term is softplus(f).
 5. **PPO + GAE** on policy and value (the entropy bonus lambda2 is
    ``ent_coef``), in one of two recurrent-update modes: ``sequence`` (whole
    episodes from their stored initial hidden state) or ``window`` (the

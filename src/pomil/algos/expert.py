@@ -66,9 +66,6 @@ class ExpertConfig(PPOOptions, RunConfig):
     RENAMED: ClassVar[dict[str, str]] = {"epochs": "ppo_epochs"}
     """Old config keys, still read from config files and checkpoints (old -> new name)."""
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-
     def env_settings(self) -> tuple[dict, list[int] | None]:
         """(constructor keywords, observation indices or None); ValueError when the env rejects them."""
         kwargs = {**locomotion_kwargs(self.env_id, self.task, self.setting), **parse_kwargs(self.env_kwargs)}
@@ -174,8 +171,7 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
             adv, ret = gae(r, roll.values, next_values, terminated=roll.terminated, truncated=roll.truncated,
                            gamma=cfg.gamma, lam=cfg.gae_lambda)
             stats = ppo_update(cfg, policy, value, opt=opt, roll=roll.with_(rewards=r, advantages=adv, returns=ret),
-                               gen=gen,
-                               guard=loop.guard, it=it)
+                               gen=gen, guard=loop.guard, it=it)
             return {**stats, "env/return": raw_rewards.sum(0).mean().item(), "env/steps": float(loop.env_steps)}
 
         loop.run(update, desc=f"expert {cfg.env_id} {cfg.task}", key_stats=("env/return", "ppo/approx_kl"),
