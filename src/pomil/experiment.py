@@ -562,11 +562,14 @@ def draw_figure(data: dict[str, Any], rollouts_path: Path, path: Path) -> bool:
     kinds = [r["kind"] for r in data["rows"].values() if r["runs"]]
     if not kinds:
         return False
-    from pomil.eval.plots import code_radius_figure, figure1, learning_curves
+    from pomil.eval.plots import code_radius_figure, figure1, grid_axis, grid_figure, learning_curves
 
-    if kinds[0] == "tasks":
-        rows = {n: {"curves": [run["curve"] for run in r["runs"]], "summary": r["summary"]}
-                for n, r in data["rows"].items() if r["kind"] == "tasks"}
+    if kinds[0] == "tasks":  # a grid over one number (demonstrations per mode): returns against it; else curves
+        tasks = {n: r for n, r in data["rows"].items() if r["kind"] == "tasks" and r["runs"]}
+        if (key := grid_axis(tasks)) is not None:
+            grid_figure(tasks, list(data["reference"]["tasks"]), key, path)
+            return True
+        rows = {n: {"curves": [run["curve"] for run in r["runs"]], "summary": r["summary"]} for n, r in tasks.items()}
         learning_curves({**data, "tasks": list(data["reference"]["tasks"]), "learners": rows}, path)
         return True
     if not rollouts_path.exists():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pomil.eval.plots import curves_figure
+from pomil.eval.plots import curves_figure, grid_axis, grid_figure, grid_lines
 
 
 def _results():
@@ -30,3 +30,23 @@ def test_curves_mark_the_warm_start_at_zero_steps_and_draw_ablations_dashed():
     bc = lines["bc-gru (final)"]
     assert bc.get_ydata()[0] == pytest.approx(0.4) and bc.get_linestyle() == ":"
     assert lines["zero actions"].get_ydata()[0] == pytest.approx(0.1)
+
+
+def _grid_rows():
+    row = lambda learner, n, mean: {"learner": learner, "settings": {"demos_per_mode": n, "bc_weight": 1.0},  # noqa: E731
+                                    "summary": {"forward": {"normalised_return": [mean, 0.1]}}}
+    return {"igp-warm-start demos_per_mode=4": row("infogail-pomdp", 4, 0.7),
+            "igp-warm-start demos_per_mode=1": row("infogail-pomdp", 1, 0.3),
+            "infogail-pomdp demos_per_mode=1": row("infogail-pomdp", 1, 0.4)}
+
+
+def test_a_grid_over_one_number_gives_one_line_per_row_against_it(tmp_path):
+    rows = _grid_rows()
+    assert grid_axis(rows) == "demos_per_mode"  # bc_weight is a setting of every row, not in the names
+    assert grid_lines(rows, "forward", "demos_per_mode") == {
+        "igp-warm-start": ([1, 4], [0.3, 0.7], [0.1, 0.1]), "infogail-pomdp": ([1], [0.4], [0.1])}
+    grid_figure(rows, ["forward"], "demos_per_mode", tmp_path / "figure.png")
+    assert (tmp_path / "figure.png").read_bytes()[:4] == b"\x89PNG"
+    two = {"a n=1 m=2": {"settings": {"n": 1, "m": 2}}, "a n=2 m=2": {"settings": {"n": 2, "m": 2}}}
+    assert grid_axis(two) is None and grid_axis({"a": {"settings": {}}}) is None  # two keys; no grid
+    assert grid_axis({"a flag=True": {"settings": {"flag": True}}}) is None  # not a number

@@ -56,6 +56,45 @@ def figure1(panels: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path: str
     _save(fig, path, 120)
 
 
+def grid_axis(rows: dict[str, dict]) -> str | None:
+    """The one settings key with numeric values that a grid varies over every row ("ROW key=value ..."),
+    the x axis of :func:`grid_figure`; None when there is no such key or more than one."""
+    named = [{tok.split("=")[0] for tok in name.split() if "=" in tok} for name in rows]
+    keys = sorted(k for k in set.intersection(*named) if all(
+        isinstance(r["settings"].get(k), (int, float)) and not isinstance(r["settings"][k], bool)
+        for r in rows.values())) if named else []
+    return keys[0] if len(keys) == 1 else None
+
+
+def grid_lines(rows: dict[str, dict], task: str, key: str) -> dict[str, tuple[list, list, list]]:
+    """(values of ``key``, mean, std) of ``task``'s normalised return, ordered by value, for each row the grid was
+    made from (its name without ``key=...``)."""
+    points: dict[str, list[tuple[float, list[float]]]] = {}
+    for name, r in rows.items():
+        label = " ".join(t for t in name.split() if not t.startswith(f"{key}=")) or r["learner"]
+        points.setdefault(label, []).append((r["settings"][key], r["summary"][task]["normalised_return"]))
+    return {label: tuple(map(list, zip(*((x, *m) for x, m in sorted(p)), strict=True)))  # type: ignore[misc]
+            for label, p in points.items()}
+
+
+def grid_figure(rows: dict[str, dict], tasks: list[str], key: str, path: str | Path) -> None:
+    """One panel per task: :func:`grid_lines` with their std as error bars, against the grid's ``key`` (the
+    layout of GAIL's Figure 1)."""
+    values = sorted({r["settings"][key] for r in rows.values()})
+    fig, axes = _pyplot().subplots(1, len(tasks), figsize=(4.6 * len(tasks), 3.8), squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
+        for i, (label, (x, mean, std)) in enumerate(grid_lines(rows, task, key).items()):
+            ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, color=COLOURS[i % len(COLOURS)], label=label)
+        if values[0] > 0 and values[-1] >= 10 * values[0]:
+            ax.set_xscale("log")
+        ax.set_xticks(values, [f"{v:g}" for v in values], minor=False)
+        ax.set(xlabel=key.replace("_", " "), ylabel="normalised return (matched code)", title=task)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path, 110, "png")
+
+
 def learning_curves(results: dict, path: str | Path) -> None:
     """:func:`curves_figure`, written to ``path`` as a PNG."""
     _save(curves_figure(results), path, 110, "png")
