@@ -198,12 +198,10 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
                     "terminating"] = option(
         "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
                 "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
-                "otherwise), default (pomil's measured recipe), paper-text (the paper's text), long-warm-start (the "
-                "former default warm start: 3000 steps at lr 1e-3), fast-warm-start (600 steps at lr 3e-3, "
-                "the log std at 10x and fitted; worse on the paper's Hopper), deep-warm-start (the default's "
-                "schedule, the log std at 10x and fitted: 4/5 seeds on the paper's Hopper) or terminating (the "
-                "policy sees (z_t, dz_t) without a_{t-1}, and the fast warm start); config.json records the one that "
-                "ran; see PRESETS")
+                "otherwise), default (pomil's measured recipe), paper-text (the paper's text), long-warm-start (3000 "
+                "steps at lr 1e-3), fast-warm-start (600 steps at lr 3e-3, the log std at 10x and fitted), "
+                "deep-warm-start (the default's schedule, the log std at 10x and fitted) or terminating (the policy "
+                "sees (z_t, dz_t) without a_{t-1}; the fast warm start); config.json records the one that ran")
     iterations: int = option(30, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
                              within="[0, inf)")
     num_envs: int = option(256, "episodes collected per iteration (at most max_iteration_steps of them)",
@@ -218,8 +216,8 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
     precision: Literal["float32", "bfloat16"] = option(
         "float32", "the updates' and the warm start's network passes (critic, posterior, policy and value; not the "
                    "rollout's): float32, or bfloat16 through torch.autocast, with outputs, losses and weights in "
-                   "float32; measured on a CPU with bfloat16 instructions (AVX512-BF16): the training loop 7-9% faster "
-                   "on two torch threads, 1.34x on one; slower on a CPU without them; other numerics (docs/speed.md)")
+                   "float32; faster on a CPU with bfloat16 instructions (AVX512-BF16), slower without; other numerics "
+                   "(docs/speed.md)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
@@ -252,25 +250,19 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
 
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
-        # The paper's text: a weight-clipped Wasserstein critic trained with RMSProp, lr 2e-4 for policy,
-        # critic and posterior, bootstrapped random updates (windows); InfoGAIL's warm start (random codes).
+        # The paper's text: weight clipping, RMSProp, lr 2e-4, random windows; InfoGAIL's warm start (random codes).
         "paper-text": {
             "critic_optimizer": "rmsprop", "weight_clip": 0.01, "gradient_penalty": 0.0, "lr": 2e-4, "lr_critic": 2e-4,
             "lr_posterior": 2e-4, "update_mode": "window", "warm_start_codes": "random", "warm_start_iterations": 300,
             "warm_start_lr": 1e-3, "warm_start_lr_decay": False, "warm_start_lr_warmup": 0.0, "bc_weight": 0.0,
             "policy_warmup_iterations": 0,
         },
-        # 3000 steps at a constant 1e-3: the recipe of results/circles-ablations, hopper-speed and some rows of
-        # hopper-variants (their specs name it).
+        # The warm starts compared in docs/method.md, "The warm start's schedule".
         "long-warm-start": LONG_WARM_START,
-        # 600 steps at lr 3e-3 without a rise, the log std at 10x and fitted: the long warm start's fit on the
-        # demonstrations (NLL), but a worse closed-loop gait on the paper's Hopper (forward 0.86 against 0.98, 5 seeds).
         "fast-warm-start": FAST_WARM_START,
-        # The default's schedule with the log std at 10x the rate and fitted at the end: 4/5 seeds on the paper's
-        # Hopper against the default's 5/5 (docs/method.md, "The warm start's schedule").
         "deep-warm-start": DEEP_WARM_START,
-        # Episodes that end when the agent fails (standard Hopper): a clone that sees a_{t-1} copies it and falls
-        # within 22 steps; the velocity dz_t and the fast warm start kept it up (docs/hopper.md, "Standard setting").
+        # Episodes that end when the agent fails (standard Hopper): a clone that sees a_{t-1} copies it and falls;
+        # the velocity dz_t and the fast warm start keep it up (docs/hopper.md, "Standard setting").
         "terminating": {"policy_obs_delta": True, "policy_prev_action": False, **FAST_WARM_START},
     }
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``;
@@ -657,14 +649,20 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     Continuous codes (``code_kind``): random codes from the prior, or with ``episode_codes``
     each episode's own code, fitted with the policy (:func:`clone_with_continuous_codes`); the
     posterior then learns those codes."""
+    codes, posterior = None, m.posterior is not None and cfg.posterior_init_iterations > 0
     if cfg.code_kind == "continuous" and num_codes:
-        return _continuous_warm_start(m, expert, expert_prev, cfg=cfg, gen=gen, guard=guard,
-                                      episode_codes=episode_codes)
-    stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes=num_codes, mixture=mixture, cfg=cfg, gen=gen,
-                                 guard=guard)
-    if mixture and m.posterior is not None and cfg.posterior_init_iterations > 0:
-        codes = most_likely_codes(m.policy, expert, expert_prev)
-        stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
+        stats = clone_with_continuous_codes(m.policy, expert, expert_prev, cfg=cfg, gen=gen, guard=guard,
+                                            episode_codes=episode_codes)
+        if episode_codes is not None and posterior:
+            codes = episode_codes.codes.detach()
+            stats["bc/code_spread"] = codes.std(0).mean().item()
+    else:
+        stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes=num_codes, mixture=mixture, cfg=cfg,
+                                     gen=gen, guard=guard)
+        if mixture and posterior:
+            codes = most_likely_codes(m.policy, expert, expert_prev)
+            stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
+    if codes is not None:
         stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes=codes, cfg=cfg, gen=gen, guard=guard))
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
@@ -695,19 +693,6 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
             bar.set_postfix(loss=f"{s['posterior/loss']:.4g}", refresh=False)
             bar.update()
     return s
-
-
-def _continuous_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, cfg: AdversarialConfig,
-                           gen: torch.Generator, guard: DivergenceGuard | None,
-                           episode_codes: EpisodeCodes | None) -> dict[str, float]:
-    """:func:`bc_warm_start` for continuous codes."""
-    stats = clone_with_continuous_codes(m.policy, expert, expert_prev, cfg=cfg, gen=gen, guard=guard,
-                                        episode_codes=episode_codes)
-    if episode_codes is not None and m.posterior is not None and cfg.posterior_init_iterations > 0:
-        codes = episode_codes.codes.detach()
-        stats["bc/code_spread"] = codes.std(0).mean().item()
-        stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes=codes, cfg=cfg, gen=gen, guard=guard))
-    return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
 def update_critic(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, float]:
@@ -1003,15 +988,10 @@ def auto_num_codes(cfg: AdversarialConfig, expert: PaddedEpisodes, execute: Call
                    guard: DivergenceGuard | None = None) -> NumCodesChoice:
     """``--num-codes auto``: K from the demonstrations ``expert`` by the held-out classification
     likelihood of the mixture warm start (:mod:`pomil.algos.num_codes`).  Each K's policy is the run's, seeded by the
-    run's seed and fitted by the run's warm start (:func:`clone_demonstrations`, always the codes'
-    mixture) for ``num_codes_search_iterations`` steps on the training split, on the fast warm start's
-    schedule (:data:`FAST_WARM_START`, whatever the run's own warm start): the learning rate decays to 0
-    and the log std ends at its maximum-likelihood value.  The scores compare fits, so each K's fit must
-    be near its end: with the run's default schedule (lr 1e-3, constant) after 500 steps, the scores of
-    one K moved by about as much from seed to seed as the gain of the true K, and two circles chose 2
-    in 8 of 10 seeds; on this schedule, in every seed measured (docs/method.md).  Without the log std's
-    fit a few hundred Adam steps move it only about 1e-3 each, and the scores would measure mostly how
-    far it got (Hopper, 150 steps: K 3 ahead of K 2 without the fit, K 2 clearly ahead with it)."""
+    run's seed and fitted by the run's warm start (:func:`clone_demonstrations`, always the codes' mixture) for
+    ``num_codes_search_iterations`` steps on the training split, on the fast warm start's schedule
+    (:data:`FAST_WARM_START`, whatever the run's own): the scores compare fits, so each K's fit must be near its end,
+    with its log std at its maximum-likelihood value (docs/method.md, "How many codes")."""
     expert = replace(expert, actions=execute(expert.actions))  # as the warm start sees them
     search_cfg = replace(cfg, **{**FAST_WARM_START, "warm_start_iterations": cfg.num_codes_search_iterations,
                                  "precision": "float32"})  # scores a few hundredths of a nat apart: no rounding

@@ -60,9 +60,6 @@ class BCConfig(RunConfig):
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``;
     ``auto`` is replaced by one of them when training starts (``config.resolved``)."""
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-
 
 def sized_for_episodes(config: BCConfig, episode_steps: int) -> BCConfig:
     """``config`` with batch_episodes cut to max_batch_steps for episodes of ``episode_steps`` (a note

@@ -72,20 +72,18 @@ FAST_WARM_START: dict[str, Any] = {
     "warm_start_iterations": 600, "warm_start_lr": 3e-3, "warm_start_lr_decay": True, "warm_start_lr_warmup": 0.0,
     "warm_start_log_std_lr_scale": 10.0, "warm_start_fit_log_std": True,
 }
-"""The fast warm start's settings, lr 3e-3 without a rise (presets fast-warm-start and terminating, and every
-K's fit of the ``--num-codes auto`` search, which was calibrated on it)."""
+"""The fast warm start's settings (presets fast-warm-start and terminating; every K's fit of ``--num-codes auto``)."""
 
 
 LONG_WARM_START: dict[str, Any] = {
     "warm_start_iterations": 3000, "warm_start_lr": 1e-3, "warm_start_lr_decay": False, "warm_start_lr_warmup": 0.0,
     "warm_start_log_std_lr_scale": 1.0, "warm_start_fit_log_std": False,
 }
-"""Preset long-warm-start: the former default warm start, 3000 steps at a constant lr 1e-3."""
+"""Preset long-warm-start: 3000 steps at a constant lr 1e-3."""
 
 
 DEEP_WARM_START: dict[str, Any] = {**FAST_WARM_START, "warm_start_lr": 1e-2, "warm_start_lr_warmup": 0.2}
-"""Preset deep-warm-start: the fast warm start with the rate rising linearly to 1e-2 over the first 20% of the
-steps, then decaying to 0 (the default's schedule, with the fast warm start's log std: 10x and fitted)."""
+"""Preset deep-warm-start: the default's schedule with the fast warm start's log std (10x and fitted)."""
 
 
 def bc_loss(policy: GaussianPolicy, obs: torch.Tensor, actions: torch.Tensor, *, mask: torch.Tensor,
@@ -133,11 +131,8 @@ class MixtureAssignment:
     """Which code clones which demonstration episode: balanced responsibilities (K, E) over the
     *whole* demonstration set, recomputed from the policy every ``refresh`` calls of :meth:`update`.
 
-    Balancing each random batch on its own (every code takes 1/K of the batch) forces episodes
-    of whatever mode the batch over-samples onto other codes, most often the code of the most
-    similar mode; with 6 modes and 64 episodes a batch holds 10.7 +- 3 episodes per mode, so each
-    code keeps learning a share of its neighbour's behaviour and the policy drifts onto the
-    neighbouring circle in 5-15% of its episodes.  Balancing over all episodes has no such noise.
+    Balancing each random batch on its own forces the episodes of whatever mode the batch over-samples
+    onto other codes; balancing over all episodes has no such noise (docs/method.md).
     """
 
     def __init__(self, data: PaddedEpisodes, prev_actions: torch.Tensor, refresh: int = 10, chunk: int = 256) -> None:
@@ -301,11 +296,9 @@ class EpisodeCodes(nn.Module):
     and are then fitted with the policy by the demonstrations' likelihood (each episode's actions
     under its own code); every few steps they are moved onto the prior by their ranks
     (:func:`pomil.nn.codes.spread_as_prior`), so the demonstrations' codes spread exactly as the
-    codes that rollouts draw, as the mixture gives every code 1/K of the episodes.  Why the
-    principal components: from random codes the fit folds the code line (circles whose radius
-    varies: codes -0.9 and +0.9 both drew radius 6.3-6.6, code 0 radius 3.4; Spearman 0.13),
-    a local optimum it does not leave; the first component of the circles' episodes alone has
-    |Spearman| 0.98 with their radius.  A module, so that a run's checkpoint keeps them."""
+    codes that rollouts draw, as the mixture gives every code 1/K of the episodes.  From random codes
+    the fit folds the code line, a local optimum it does not leave (docs/method.md).  A module, so that a
+    run's checkpoint keeps them."""
 
     def __init__(self, data: PaddedEpisodes, dim: int, prior: str) -> None:
         super().__init__()
@@ -383,18 +376,15 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
     else:
         codes_of = lambda idx: sample_prior(cfg.code_prior, len(idx), policy.arch.num_codes,  # noqa: E731
                                             gen).to(idx.device)
-    stats: dict[str, float] = {}
-    with progress_bar(cfg.warm_start_iterations, "warm start", cfg.progress) as bar:
-        for step in range(1, cfg.warm_start_iterations + 1):
-            with precision_context(cfg.precision, expert.mask.device):
-                stats = bc_step(policy, opt, expert, prev_actions=expert_prev, batch_episodes=cfg.warm_start_batch,
-                                generator=gen, codes_of=codes_of)
-            decay.step()
-            if episode_codes is not None and (step % CODE_SPREAD_EVERY == 0 or step == cfg.warm_start_iterations):
-                episode_codes.spread_()
-            check_warm_start_step(guard, f"warm-start step {step}", stats, policy)
-            bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
-            bar.update()
+
+    def after(i: int) -> None:
+        decay.step()
+        if episode_codes is not None and (i % CODE_SPREAD_EVERY == 0 or i == cfg.warm_start_iterations):
+            episode_codes.spread_()
+
+    stats = cloning_steps(policy, lambda: bc_step(policy, opt, expert, prev_actions=expert_prev, generator=gen,
+                                                  batch_episodes=cfg.warm_start_batch, codes_of=codes_of),
+                          after=after, cfg=cfg, device=expert.mask.device, guard=guard)
     if cfg.warm_start_fit_log_std:
         codes = (episode_codes.codes.detach() if episode_codes is not None
                  else codes_of(torch.arange(expert.mask.shape[1], device=expert.mask.device)))
@@ -405,23 +395,35 @@ def clone_with_continuous_codes(policy: GaussianPolicy, expert: PaddedEpisodes, 
 def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, num_codes: int,
                          mixture: bool, cfg: AdversarialConfig, gen: torch.Generator,
                          guard: DivergenceGuard | None = None, where: str = "") -> dict[str, float]:
-    """The policy's part of :func:`bc_warm_start`: ``warm_start_iterations`` behaviour-cloning steps
-    (the codes' mixture, or random codes), then the log std's fit (``warm_start_fit_log_std``).
+    """The policy's part of the adversarial learners' ``bc_warm_start``: ``warm_start_iterations`` behaviour-cloning
+    steps (the codes' mixture, or random codes), then the log std's fit (``warm_start_fit_log_std``).
     Returns the last step's stats; ``where`` prefixes the step in a divergence's message."""
     opt, decay = warm_start_optimizer(policy, cfg)
-    stats: dict[str, float] = {}
     assignment = mixture_assignment(cfg, expert, expert_prev, mixture)
-    with progress_bar(cfg.warm_start_iterations, f"{where}warm start", cfg.progress) as bar:
-        for step in range(1, cfg.warm_start_iterations + 1):
-            with precision_context(cfg.precision, expert.mask.device):  # one context a step (see precision_context)
-                stats = bc_step(policy, opt, expert, prev_actions=expert_prev, batch_episodes=cfg.warm_start_batch,
-                                generator=gen, num_codes=num_codes, mixture=mixture, assignment=assignment)
-            decay.step()
-            check_warm_start_step(guard, f"{where}warm-start step {step}", stats, policy)
-            bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
-            bar.update()
+
+    stats = cloning_steps(policy, lambda: bc_step(policy, opt, expert, prev_actions=expert_prev, generator=gen,
+                                                  batch_episodes=cfg.warm_start_batch, num_codes=num_codes,
+                                                  mixture=mixture, assignment=assignment),
+                          after=lambda i: decay.step(), cfg=cfg, device=expert.mask.device, guard=guard, where=where)
     if cfg.warm_start_fit_log_std:
         stats.update(fit_log_std(policy, expert, expert_prev, mixture=mixture))
+    return stats
+
+
+def cloning_steps(policy: GaussianPolicy, step: Callable[[], dict[str, float]], *, after: Callable[[int], None],
+                  cfg: AdversarialConfig, device: torch.device, guard: DivergenceGuard | None,
+                  where: str = "") -> dict[str, float]:
+    """``warm_start_iterations`` times ``step()`` in the precision's context (one a step, see ``precision_context``),
+    then ``after(i)`` (i from 1) and the divergence guard's checks, under a progress bar; the last step's stats."""
+    stats: dict[str, float] = {}
+    with progress_bar(cfg.warm_start_iterations, f"{where}warm start", cfg.progress) as bar:
+        for i in range(1, cfg.warm_start_iterations + 1):
+            with precision_context(cfg.precision, device):
+                stats = step()
+            after(i)
+            check_warm_start_step(guard, f"{where}warm-start step {i}", stats, policy)
+            bar.set_postfix(nll=f"{stats['bc/nll']:.4g}", refresh=False)
+            bar.update()
     return stats
 
 
