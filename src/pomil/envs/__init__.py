@@ -25,10 +25,13 @@ from typing import Any, Literal
 import gymnasium as gym
 import torch
 
+from pomil.envs import circles
+from pomil.envs.batch import GymSim, check_box_spaces
 from pomil.envs.circles import ENV_ID as CIRCLES_ID
-from pomil.envs.locomotion import HOPPER_ID, HOPPER_SPEED_ID
+from pomil.envs.locomotion import HOPPER_ID, HOPPER_SPEED_ID, HopperSim
 from pomil.envs.locomotion import ends_on_failure as _gym_ends_on_failure
-from pomil.envs.vec import BatchedEnv
+from pomil.envs.vec import BatchedEnv, TorchVecEnv
+from pomil.envs.wrappers import check_indices
 
 if CIRCLES_ID not in gym.registry:
     gym.register(id=CIRCLES_ID, entry_point="pomil.envs.circles:CirclesEnv")
@@ -62,36 +65,28 @@ class EnvFamily:
 
 # ------------------------------------------------------------------- circles
 def _circles_make(env_id, env_kwargs, num_envs, *, device="cpu", observation_mask=None, seed=None):
-    from pomil.envs.circles import CirclesSpec, CirclesVecEnv
-
     if observation_mask is not None:
         raise ValueError("the circles environment takes no observation mask (it observes positions only)")
-    return CirclesVecEnv(CirclesSpec.from_dict(env_kwargs), num_envs, device)
+    return circles.CirclesVecEnv(circles.CirclesSpec.from_dict(env_kwargs), num_envs, device)
 
 
 def _circles_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
-    from pomil.envs.circles import CirclesSpec
-
-    spec = CirclesSpec.from_dict(env_kwargs)
+    spec = circles.CirclesSpec.from_dict(env_kwargs)
     return spec.obs_dim, spec.act_dim
 
 
 def _circles_executed(env_id: str, env_kwargs: dict[str, Any]) -> Executor:
-    from pomil.envs.circles import CirclesSpec, executed_actions
-
-    action_type = CirclesSpec.from_dict(env_kwargs).action_type
-    return lambda actions: executed_actions(actions, action_type)
+    action_type = circles.CirclesSpec.from_dict(env_kwargs).action_type
+    return lambda actions: circles.executed_actions(actions, action_type)
 
 
 def _circles_codes(metadata: dict[str, Any]) -> int | None:
-    circles = (metadata.get("env_kwargs") or {}).get("circles")
-    return len(circles) if circles else None  # one code per circle (mode)
+    modes = (metadata.get("env_kwargs") or {}).get("circles")
+    return len(modes) if modes else None  # one code per circle (mode)
 
 
 # ------------------------------------------------------- Gymnasium and Hopper
 def _gym_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
-    from pomil.envs.batch import check_box_spaces
-
     env = gym.make(env_id, **env_kwargs)
     try:
         return check_box_spaces(env, env_id)
@@ -100,16 +95,10 @@ def _gym_dims(env_id: str, env_kwargs: dict[str, Any]) -> tuple[int, int]:
 
 
 def _hopper_make(env_id, env_kwargs, num_envs, *, device="cpu", observation_mask=None, seed=None):
-    from pomil.envs.locomotion import HopperSim
-    from pomil.envs.vec import TorchVecEnv
-
     return TorchVecEnv(HopperSim(num_envs, env_kwargs, env_id=env_id), observation_mask, device, seed)
 
 
 def _gym_make(env_id, env_kwargs, num_envs, *, device="cpu", observation_mask=None, seed=None):
-    from pomil.envs.batch import GymSim
-    from pomil.envs.vec import TorchVecEnv
-
     return TorchVecEnv(GymSim(env_id, num_envs, env_kwargs), observation_mask, device, seed)
 
 
@@ -159,8 +148,6 @@ def env_dims(env_id: str, env_kwargs: dict[str, Any], observation_mask: Sequence
     """
     obs_dim, act_dim = env_family(env_id).dims(env_id, env_kwargs)
     if observation_mask is not None:
-        from pomil.envs.wrappers import check_indices
-
         obs_dim = len(check_indices(observation_mask, obs_dim))
     return obs_dim, act_dim
 

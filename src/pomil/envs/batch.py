@@ -17,7 +17,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from pomil.envs.vec import generator_states, set_generator_states
+from pomil.envs.vec import SimCopies
 
 
 def mujoco_warnings_once() -> None:
@@ -48,7 +48,7 @@ def check_box_spaces(env: gym.Env, env_id: str) -> tuple[int, int]:
     return int(env.observation_space.shape[0]), int(env.action_space.shape[0])
 
 
-class GymSim:
+class GymSim(SimCopies):
     """N copies of a Gymnasium environment, NumPy in and out.
 
     ``reset(seed) -> obs (N, obs_dim)`` (copy i seeded ``seed + i``, as
@@ -70,12 +70,9 @@ class GymSim:
         self.obs = np.zeros((num_envs, self.obs_dim))
         self.done = np.ones(num_envs, dtype=bool)
 
-    def rng_states(self) -> list[str]:
-        """Each copy's generator state (:func:`pomil.envs.vec.generator_states`)."""
-        return generator_states([env.unwrapped.np_random for env in self.envs])
-
-    def set_rng_states(self, states: list[str]) -> None:
-        set_generator_states([env.unwrapped.np_random for env in self.envs], states)
+    @property
+    def _rngs(self) -> list[np.random.Generator]:
+        return [env.unwrapped.np_random for env in self.envs]
 
     def reset(self, seed: int | None = None) -> np.ndarray:
         for i, env in enumerate(self.envs):
@@ -85,10 +82,7 @@ class GymSim:
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         actions = np.asarray(actions)
-        if actions.shape != (self.num_envs, self.act_dim):
-            raise ValueError(f"actions must have shape {(self.num_envs, self.act_dim)}, got {actions.shape}")
-        if self.done.all():
-            raise RuntimeError("call reset() before step() (every episode is over or none began)")
+        self._check_step(actions)
         reward = np.zeros(self.num_envs)
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)

@@ -70,11 +70,8 @@ class Circle:
             raise ValueError(f"circle direction must be +1 or -1, got {self.direction}")
         dist = math.hypot(*self.center)
         if abs(dist - self.radius) > 1e-6 * max(1.0, self.radius):
-            raise ValueError(
-                f"circle centred at {self.center} with radius {self.radius} does not pass "
-                f"through the origin (|centre| = {dist:.6g})"
-            )
-
+            raise ValueError(f"circle centred at {self.center} with radius {self.radius} does not pass "
+                             f"through the origin (|centre| = {dist:.6g})")
 
     def with_radius(self, radius: float) -> Circle:
         """The circle of ``radius`` through the origin with the same tangent there and direction.
@@ -130,20 +127,14 @@ class CirclesSpec:
         return 2 if self.action_type == "vector" else 1
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "circles": [[*c.center, c.radius, c.direction] for c in self.circles],
-            "episode_length": self.episode_length,
-            "history": self.history,
-            "action_type": self.action_type,
-        }
+        return {"circles": [[*c.center, c.radius, c.direction] for c in self.circles],
+                "episode_length": self.episode_length, "history": self.history, "action_type": self.action_type}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> CirclesSpec:
         d = dict(d)
-        if "circles" in d and d["circles"] is not None:
-            d["circles"] = tuple(
-                Circle((float(c[0]), float(c[1])), float(c[2]), int(c[3])) for c in d["circles"]
-            )
+        if d.get("circles") is not None:
+            d["circles"] = tuple(Circle((float(c[0]), float(c[1])), float(c[2]), int(c[3])) for c in d["circles"])
         else:
             d.pop("circles", None)
         return cls(**d)
@@ -197,25 +188,14 @@ class CirclesVecEnv:
     def __init__(self, spec: CirclesSpec, num_envs: int, device: torch.device | str = "cpu") -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        self.spec = spec
-        self.num_envs = num_envs
+        self.spec, self.num_envs, self.obs_dim, self.act_dim = spec, num_envs, spec.obs_dim, spec.act_dim
         self.device = torch.device(device)
         self.centres, self.radii, self.directions = spec.tensors(self.device)
-        self.t = 0
-        self._needs_reset = True
-        self.positions = torch.zeros(num_envs, 2, device=self.device)
-        self._history = torch.zeros(num_envs, spec.history, 2, device=self.device)
+        self.reset()
+        self._needs_reset = True  # at the start, but no episode begun before reset()
 
     def _obs(self) -> torch.Tensor:
         return self._history.reshape(self.num_envs, -1).clone()
-
-    @property
-    def obs_dim(self) -> int:
-        return self.spec.obs_dim
-
-    @property
-    def act_dim(self) -> int:
-        return self.spec.act_dim
 
     def close(self) -> None:
         """Nothing to release (the :class:`pomil.envs.vec.BatchedEnv` interface)."""
@@ -265,23 +245,15 @@ class CirclesEnv(gym.Env):
 
     metadata = {"render_modes": []}
 
-    def __init__(
-        self,
-        circles: Sequence[Sequence[float]] | None = None,
-        episode_length: int = 33,
-        history: int = 1,
-        action_type: Literal["vector", "angle"] = "vector",
-    ) -> None:
-        self.spec_ = CirclesSpec.from_dict(
-            {"circles": circles, "episode_length": episode_length, "history": history, "action_type": action_type}
-        )
+    def __init__(self, circles: Sequence[Sequence[float]] | None = None, episode_length: int = 33, history: int = 1,
+                 action_type: Literal["vector", "angle"] = "vector") -> None:
+        self.spec_ = CirclesSpec.from_dict({"circles": circles, "episode_length": episode_length, "history": history,
+                                            "action_type": action_type})
         self._vec = CirclesVecEnv(self.spec_, 1)
         bound = float(episode_length)
         self.observation_space = gym.spaces.Box(-bound, bound, (self.spec_.obs_dim,), np.float32)
-        if action_type == "vector":
-            self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
-        else:
-            self.action_space = gym.spaces.Box(-math.pi, math.pi, (1,), np.float32)
+        self.action_space = (gym.spaces.Box(-1.0, 1.0, (2,), np.float32) if action_type == "vector"
+                             else gym.spaces.Box(-math.pi, math.pi, (1,), np.float32))
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
@@ -335,9 +307,8 @@ class CircleExperts:
         return torch.stack([torch.cos(heading), torch.sin(heading)], dim=-1)
 
 
-def classify_modes(
-    positions: np.ndarray | torch.Tensor, spec: CirclesSpec, threshold: float = DEFAULT_NONE_THRESHOLD
-) -> np.ndarray:
+def classify_modes(positions: np.ndarray | torch.Tensor, spec: CirclesSpec,
+                   threshold: float = DEFAULT_NONE_THRESHOLD) -> np.ndarray:
     """Mode of each trajectory: the circle it stays closest to on average.
 
     ``positions``: (E, T, 2) visited positions.  Returns (E,) int64 mode
@@ -375,9 +346,6 @@ def fit_circles(positions: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.nd
     return centres, radii
 
 
-def make_spec(
-    modes: Literal["one", "two", "four"] | str = "two", radius: float = 5.0, episode_length: int = 33, *,
-              history: int = 1,
-    action_type: Literal["vector", "angle"] = "vector",
-) -> CirclesSpec:
+def make_spec(modes: Literal["one", "two", "four"] | str = "two", radius: float = 5.0, episode_length: int = 33, *,
+              history: int = 1, action_type: Literal["vector", "angle"] = "vector") -> CirclesSpec:
     return CirclesSpec(circles_preset(modes, radius), episode_length, history, action_type)

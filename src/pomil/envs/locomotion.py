@@ -38,7 +38,7 @@ import numpy as np
 from gymnasium.envs.mujoco.hopper_v5 import HopperEnv
 from gymnasium.utils.seeding import np_random
 
-from pomil.envs.vec import generator_states, set_generator_states
+from pomil.envs.vec import SimCopies
 from pomil.parallel import usable_cpus
 
 HOPPER_ID = "Hopper-v5"
@@ -197,13 +197,54 @@ def ends_on_failure(env_id: str, env_kwargs: dict[str, Any]) -> bool:
     return bool(env_kwargs.get("terminate_when_unhealthy", default))
 
 
-def _model_path() -> str:
-    import gymnasium.envs.mujoco as gm
+def check_env_kwargs(env_id: str, defaults: dict[str, Any], env_kwargs: dict[str, Any] | None,
+                     flag: str = "") -> dict[str, Any]:
+    """``defaults`` (a simulator's keywords of ``env_id``) with ``env_kwargs`` applied; ValueError, its message
+    led by ``flag``, for a keyword the simulator does not take, and for ``max_episode_steps`` below 1."""
+    unknown = sorted(set(env_kwargs or {}) - set(defaults))
+    if unknown:
+        raise ValueError(f"{flag}unsupported {env_id} keyword(s) {unknown}; supported: {sorted(defaults)}")
+    kw = {**defaults, **(env_kwargs or {})}
+    if int(kw["max_episode_steps"]) < 1:
+        raise ValueError(f"max_episode_steps must be >= 1, got {kw['max_episode_steps']}")
+    return kw
 
-    return os.path.join(os.path.dirname(gm.__file__), "assets", "hopper.xml")
+
+class LocomotionSim(SimCopies):
+    """What the batched MuJoCo locomotion simulators share (:class:`HopperSim`, :class:`pomil.envs.warp.WarpSim`):
+    the model's dimensions and initial state, and each copy's reset noise drawn from its own generator."""
+
+    kw: dict[str, Any]
+
+    def _load(self, num_envs: int, xml: str, frame_skip: int) -> tuple[mujoco.MjModel, mujoco.MjData]:
+        """The model of gymnasium's asset ``xml`` and a state of it; sets ``num_envs``, ``dt``, ``act_dim``,
+        ``obs_dim``, ``init_qpos``, ``init_qvel`` and unseeded generators (``kw`` must be set)."""
+        import gymnasium.envs.mujoco as gm
+
+        model = mujoco.MjModel.from_xml_path(os.path.join(os.path.dirname(gm.__file__), "assets", xml))
+        data = mujoco.MjData(model)
+        self.num_envs, self.dt, self.act_dim = num_envs, model.opt.timestep * frame_skip, model.nu
+        self.obs_dim = model.nq + model.nv - (1 if self.kw["exclude_current_positions_from_observation"] else 0)
+        self.init_qpos, self.init_qvel = data.qpos.copy(), data.qvel.copy()
+        self._rngs = [np_random(None)[0] for _ in range(num_envs)]
+        return model, data
+
+    def _initial_states(self, seed: int | None, normal_qvel: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Each copy's initial qpos (N, nq) and qvel (N, nv), drawn in the order of gymnasium's ``reset_model``:
+        uniform noise of +-``reset_noise_scale`` (qvel with ``normal_qvel``: the scale times a standard normal).
+        ``seed``: copy i's generator is seeded ``seed + i`` first; None: each goes on."""
+        if seed is not None:
+            self._rngs = [np_random(seed + i)[0] for i in range(self.num_envs)]
+        s, nq, nv = self.kw["reset_noise_scale"], len(self.init_qpos), len(self.init_qvel)
+        qpos, qvel = np.empty((self.num_envs, nq)), np.empty((self.num_envs, nv))
+        for i, rng in enumerate(self._rngs):
+            qpos[i] = self.init_qpos + rng.uniform(low=-s, high=s, size=nq)
+            qvel[i] = self.init_qvel + (s * rng.standard_normal(nv) if normal_qvel
+                                        else rng.uniform(low=-s, high=s, size=nv))
+        return qpos, qvel
 
 
-class HopperSim:
+class HopperSim(LocomotionSim):
     """N Hopper-v5 copies in NumPy (float64), all reset together.
 
     ``reset(seed) -> obs (N, 11)``; ``step(actions (N, 3)) -> (obs, reward,
@@ -220,29 +261,15 @@ class HopperSim:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if env_id not in (HOPPER_ID, HOPPER_SPEED_ID):
             raise ValueError(f"HopperSim runs {HOPPER_ID} and {HOPPER_SPEED_ID}, not {env_id!r}")
-        defaults = SPEED_DEFAULTS if env_id == HOPPER_SPEED_ID else HOPPER_DEFAULTS
-        unknown = sorted(set(env_kwargs or {}) - set(defaults))
-        if unknown:
-            raise ValueError(f"unsupported {env_id} keyword(s) {unknown}; supported: {sorted(defaults)}")
-        self.kw = {**defaults, **(env_kwargs or {})}
+        self.kw = check_env_kwargs(env_id, SPEED_DEFAULTS if env_id == HOPPER_SPEED_ID else HOPPER_DEFAULTS,
+                                   env_kwargs)
         self.target_velocity = float(self.kw["target_velocity"]) if env_id == HOPPER_SPEED_ID else None
-        if int(self.kw["max_episode_steps"]) < 1:
-            raise ValueError(f"max_episode_steps must be >= 1, got {self.kw['max_episode_steps']}")
-        self.num_envs = num_envs
-        self.model = mujoco.MjModel.from_xml_path(_model_path())
+        self.model, _ = self._load(num_envs, "hopper.xml", FRAME_SKIP)
         self.data = [mujoco.MjData(self.model) for _ in range(num_envs)]
-        self.dt = self.model.opt.timestep * FRAME_SKIP
-        self.act_dim = self.model.nu
-        excluded = 1 if self.kw["exclude_current_positions_from_observation"] else 0
-        self.obs_dim = self.model.nq + self.model.nv - excluded
-        self.init_qpos = self.data[0].qpos.copy()
-        self.init_qvel = self.data[0].qvel.copy()
-        self.ctrl_range = self.model.actuator_ctrlrange.copy()
         n_threads = threads if threads is not None else min(usable_cpus(), 16)
         n_threads = max(1, min(n_threads, num_envs // 8 or 1))
         self._chunks = [range(i, num_envs, n_threads) for i in range(n_threads)]
         self._pool = ThreadPoolExecutor(n_threads) if n_threads > 1 else None
-        self._rngs = [np_random(None)[0] for _ in range(num_envs)]
         self.qpos = np.zeros((num_envs, self.model.nq))
         self.qvel = np.zeros((num_envs, self.model.nv))
         self.done = np.ones(num_envs, dtype=bool)
@@ -277,21 +304,10 @@ class HopperSim:
     def x_position(self) -> np.ndarray:
         return self.qpos[:, 0].copy()
 
-    def rng_states(self) -> list[str]:
-        """The per-copy generators' states (:func:`pomil.envs.vec.generator_states`)."""
-        return generator_states(self._rngs)
-
-    def set_rng_states(self, states: list[str]) -> None:
-        set_generator_states(self._rngs, states)
-
     def reset(self, seed: int | None = None) -> np.ndarray:
-        if seed is not None:
-            self._rngs = [np_random(seed + i)[0] for i in range(self.num_envs)]
-        s = self.kw["reset_noise_scale"]
-        for d, rng in zip(self.data, self._rngs, strict=True):
+        for d, qpos, qvel in zip(self.data, *self._initial_states(seed), strict=True):
             mujoco.mj_resetData(self.model, d)
-            d.qpos[:] = self.init_qpos + rng.uniform(low=-s, high=s, size=self.model.nq)
-            d.qvel[:] = self.init_qvel + rng.uniform(low=-s, high=s, size=self.model.nv)
+            d.qpos[:], d.qvel[:] = qpos, qvel
             mujoco.mj_forward(self.model, d)
         self._gather()
         self.done[:] = False
@@ -300,11 +316,8 @@ class HopperSim:
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         actions = np.asarray(actions, dtype=np.float64)
-        if actions.shape != (self.num_envs, self.act_dim):
-            raise ValueError(f"actions must have shape {(self.num_envs, self.act_dim)}, got {actions.shape}")
-        if self.done.all():
-            raise RuntimeError("call reset() before step() (every episode is over or none began)")
-        live = np.flatnonzero(~self.done)
+        self._check_step(actions)
+        was_done = self.done.copy()
         x_before = self.qpos[:, 0].copy()
 
         def advance(chunk):
@@ -325,8 +338,6 @@ class HopperSim:
         terminated = ~healthy if self.kw["terminate_when_unhealthy"] else np.zeros(self.num_envs, dtype=bool)
         truncated = np.full(self.num_envs,
                             self.t >= int(self.kw["max_episode_steps"]))  # as TimeLimit: may coincide with terminated
-        was_done = np.ones(self.num_envs, dtype=bool)
-        was_done[live] = False
         reward[was_done] = 0.0
         terminated[was_done] = False
         truncated[was_done] = False

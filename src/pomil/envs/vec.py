@@ -61,30 +61,54 @@ class BatchedEnv(Protocol):
     def close(self) -> None: ...
 
 
-def generator_states(rngs: Sequence[np.random.Generator]) -> list[str]:
-    """Each NumPy generator's bit-generator state as JSON text: what a checkpoint keeps of a
-    simulator's per-copy generators (text, never a pickle)."""
-    return [json.dumps(rng.bit_generator.state) for rng in rngs]
+class SimCopies:
+    """What the batched simulators share: the per-copy NumPy generators ``_rngs``, whose
+    bit-generator states :meth:`rng_states` gives as JSON text for a checkpoint (never a pickle),
+    and the checks of a step's actions."""
 
+    num_envs: int
+    act_dim: int
+    done: Any
+    _rngs: Sequence[np.random.Generator]
 
-def set_generator_states(rngs: Sequence[np.random.Generator], states: Any) -> None:
-    """Put :func:`generator_states`' texts back into ``rngs``; ValueError when they do not fit."""
-    if not isinstance(states, list) or len(states) != len(rngs) or not all(isinstance(x, str) for x in states):
-        raise ValueError(f"the environment's generator states are not {len(rngs)} texts")
-    for rng, text in zip(rngs, states, strict=True):
-        try:
-            rng.bit_generator.state = json.loads(text)
-        except (TypeError, ValueError, KeyError) as err:
-            raise ValueError(f"an environment generator's state is damaged ({type(err).__name__})") from None
+    def rng_states(self) -> list[str]:
+        return [json.dumps(rng.bit_generator.state) for rng in self._rngs]
+
+    def set_rng_states(self, states: Any) -> None:
+        """Put :meth:`rng_states`' texts back into the generators; ValueError when they do not fit."""
+        rngs = self._rngs
+        if not isinstance(states, list) or len(states) != len(rngs) or not all(isinstance(x, str) for x in states):
+            raise ValueError(f"the environment's generator states are not {len(rngs)} texts")
+        for rng, text in zip(rngs, states, strict=True):
+            try:
+                rng.bit_generator.state = json.loads(text)
+            except (TypeError, ValueError, KeyError) as err:
+                raise ValueError(f"an environment generator's state is damaged ({type(err).__name__})") from None
+
+    def _check_step(self, actions: Any) -> None:
+        """ValueError for actions not of shape (N, act_dim); RuntimeError when no episode is running."""
+        if tuple(actions.shape) != (self.num_envs, self.act_dim):
+            raise ValueError(f"actions must have shape {(self.num_envs, self.act_dim)}, got {tuple(actions.shape)}")
+        if bool(self.done.all()):
+            raise RuntimeError("call reset() before step() (every episode is over or none began)")
 
 
 class SimState:
-    """``state_dict`` / ``load_state_dict`` of a batched env over a :class:`BatchedSim` (``sim``) whose first
-    reset takes a pending seed (``_seed``, None once taken): what a checkpoint keeps, so that a resumed run's
-    episodes start where the uninterrupted run's would have."""
+    """``reset``, ``close`` and ``state_dict`` / ``load_state_dict`` of a batched env over a :class:`BatchedSim`
+    (``sim``) whose first reset takes a pending seed (``_seed``, None once taken; later resets continue the
+    generators) and whose ``_obs`` turns the sim's observation into the learner's: what a checkpoint keeps,
+    so that a resumed run's episodes start where the uninterrupted run's would have."""
 
     sim: Any
     _seed: int | None
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        seed = self._seed if seed is None else seed
+        self._seed = None
+        return self._obs(self.sim.reset(seed))
+
+    def close(self) -> None:
+        self.sim.close()
 
     def state_dict(self) -> dict[str, Any]:
         return {"seed": self._seed, "generators": self.sim.rng_states()}
@@ -125,15 +149,7 @@ class TorchVecEnv(SimState):
         obs = full if self.mask is None else full[:, self.mask]
         return torch.as_tensor(obs, dtype=torch.float32).to(self.device)
 
-    def reset(self, seed: int | None = None) -> torch.Tensor:
-        seed = self._seed if seed is None else seed
-        self._seed = None  # seeded once; later resets continue the generators
-        return self._obs(self.sim.reset(seed))
-
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         obs, reward, term, trunc = self.sim.step(actions.detach().to("cpu", torch.float64).numpy())
         as_t = lambda x, dt: torch.as_tensor(x, dtype=dt).to(self.device)  # noqa: E731
         return self._obs(obs), as_t(reward, torch.float32), as_t(term, torch.bool), as_t(trunc, torch.bool)
-
-    def close(self) -> None:
-        self.sim.close()

@@ -31,17 +31,14 @@ module was written on: the tests run on Warp's CPU device.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Any
 
 import mujoco
-import numpy as np
 import torch
-from gymnasium.utils.seeding import np_random
 
-from pomil.envs.locomotion import HOPPER_DEFAULTS, HOPPER_ID
-from pomil.envs.vec import SimState, generator_states, set_generator_states
+from pomil.envs.locomotion import HOPPER_DEFAULTS, HOPPER_ID, LocomotionSim, check_env_kwargs
+from pomil.envs.vec import SimState
 from pomil.errors import PomilError
 
 INSTALL_HINT = "pip install 'pomil[gpu]' (mujoco-warp==4.0.0)"
@@ -86,9 +83,8 @@ SPECS: dict[str, LocomotionSpec] = {
 def warp_available() -> bool:
     """Whether MuJoCo Warp (the ``gpu`` extra) is installed."""
     try:
-        import mujoco_warp  # noqa: F401
-        import warp  # noqa: F401
-    except ImportError:
+        _import_warp()
+    except PomilError:
         return False
     return True
 
@@ -102,27 +98,7 @@ def _import_warp():
     return wp, mjw
 
 
-def _model_path(xml: str) -> str:
-    import gymnasium.envs.mujoco as gm
-
-    return os.path.join(os.path.dirname(gm.__file__), "assets", xml)
-
-
-def check_env_kwargs(env_id: str, env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
-    """The task's keywords with ``env_kwargs`` applied; ValueError for an id or keyword :class:`WarpSim` cannot run."""
-    if env_id not in SPECS:
-        raise ValueError(f"--sim warp runs {sorted(SPECS)}, not {env_id!r} (use --sim cpu)")
-    spec = SPECS[env_id]
-    unknown = sorted(set(env_kwargs or {}) - set(spec.defaults))
-    if unknown:
-        raise ValueError(f"--sim warp: unsupported {env_id} keyword(s) {unknown}; supported: {sorted(spec.defaults)}")
-    kw = {**spec.defaults, **(env_kwargs or {})}
-    if int(kw["max_episode_steps"]) < 1:
-        raise ValueError(f"max_episode_steps must be >= 1, got {kw['max_episode_steps']}")
-    return kw
-
-
-class WarpSim:
+class WarpSim(LocomotionSim):
     """N copies of a locomotion task as N MuJoCo Warp worlds, torch tensors in and out.
 
     ``reset(seed) -> obs (N, obs_dim)``; ``step(actions (N, act_dim)) -> (obs,
@@ -138,23 +114,18 @@ class WarpSim:
                  nconmax: int | None = None, njmax: int | None = None) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        self.kw = check_env_kwargs(env_id, env_kwargs)
+        if env_id not in SPECS:
+            raise ValueError(f"--sim warp runs {sorted(SPECS)}, not {env_id!r} (use --sim cpu)")
+        self.kw = check_env_kwargs(env_id, SPECS[env_id].defaults, env_kwargs, "--sim warp: ")
         wp, mjw = _import_warp()
         self._wp, self._mjw = wp, mjw
-        self.env_id, self.spec, self.num_envs = env_id, SPECS[env_id], num_envs
+        self.env_id, self.spec = env_id, SPECS[env_id]
         self.device = torch.device(device)
         if self.device.type == "cuda" and self.device.index is None:
             self.device = torch.device("cuda", torch.cuda.current_device())
         self.wp_device = wp.get_device(str(self.device))
-        mjm = mujoco.MjModel.from_xml_path(_model_path(self.spec.xml))
-        mjd = mujoco.MjData(mjm)
+        mjm, mjd = self._load(num_envs, self.spec.xml, self.spec.frame_skip)
         mujoco.mj_forward(mjm, mjd)
-        self.dt = mjm.opt.timestep * self.spec.frame_skip
-        self.act_dim = mjm.nu
-        excl = self.kw["exclude_current_positions_from_observation"]
-        self.obs_dim = mjm.nq + mjm.nv - (1 if excl else 0)
-        self.init_qpos, self.init_qvel = mjd.qpos.copy(), mjd.qvel.copy()
-        self.ctrl_range = mjm.actuator_ctrlrange.copy()
         with wp.ScopedDevice(self.wp_device):
             self.model = mjw.put_model(mjm)
             self.data = mjw.put_data(mjm, mjd, nworld=num_envs, nconmax=nconmax, njmax=njmax)
@@ -162,7 +133,6 @@ class WarpSim:
         self.qpos = wp.to_torch(self.data.qpos)
         self.qvel = wp.to_torch(self.data.qvel)
         self._ctrl = wp.to_torch(self.data.ctrl)
-        self._rngs = [np_random(None)[0] for _ in range(num_envs)]
         self._frozen_qpos, self._frozen_qvel = self.qpos.clone(), self.qvel.clone()
         self.done = torch.ones(num_envs, dtype=torch.bool, device=self.device)
         self.t = 0
@@ -232,25 +202,10 @@ class WarpSim:
                                f"raise nconmax / njmax (now {self.data.naconmax // self.num_envs} / {self.data.njmax})")
 
     # -- the batched-simulator interface
-    def rng_states(self) -> list[str]:
-        """The per-copy generators' states (:func:`pomil.envs.vec.generator_states`)."""
-        return generator_states(self._rngs)
-
-    def set_rng_states(self, states: list[str]) -> None:
-        set_generator_states(self._rngs, states)
-
     def reset(self, seed: int | None = None) -> torch.Tensor:
         if self.t > 0:
             self.check_overflow()
-        if seed is not None:
-            self._rngs = [np_random(seed + i)[0] for i in range(self.num_envs)]
-        s, nq, nv = self.kw["reset_noise_scale"], len(self.init_qpos), len(self.init_qvel)
-        qpos = np.empty((self.num_envs, nq))
-        qvel = np.empty((self.num_envs, nv))
-        for i, rng in enumerate(self._rngs):  # the order of draws of gymnasium's reset_model
-            qpos[i] = self.init_qpos + rng.uniform(low=-s, high=s, size=nq)
-            qvel[i] = self.init_qvel + (rng.uniform(low=-s, high=s, size=nv) if self.spec.qvel_noise == "uniform"
-                                        else s * rng.standard_normal(nv))
+        qpos, qvel = self._initial_states(seed, normal_qvel=self.spec.qvel_noise == "normal")
         self._on_device(lambda: self._mjw.reset_data(self.model, self.data))
         self.set_state(torch.as_tensor(qpos), torch.as_tensor(qvel))
         self.done.zero_()
@@ -266,10 +221,7 @@ class WarpSim:
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         actions = torch.as_tensor(actions).to(self.device, torch.float32)
-        if actions.shape != (self.num_envs, self.act_dim):
-            raise ValueError(f"actions must have shape {(self.num_envs, self.act_dim)}, got {tuple(actions.shape)}")
-        if bool(self.done.all()):
-            raise RuntimeError("call reset() before step() (every episode is over or none began)")
+        self._check_step(actions)
         was_done = self.done.clone()
         x_before = self.qpos[:, 0].clone()
         self._frozen_qpos.copy_(self.qpos)
@@ -318,21 +270,13 @@ class WarpVecEnv(SimState):
         self._seed = seed
         self.full_observation = torch.zeros(sim.num_envs, sim.obs_dim, device=sim.device)
 
-    def _view(self, full: torch.Tensor) -> torch.Tensor:
+    def _obs(self, full: torch.Tensor) -> torch.Tensor:
         self.full_observation = full
         return full if self.mask is None else full[:, self.mask]
 
-    def reset(self, seed: int | None = None) -> torch.Tensor:
-        seed = self._seed if seed is None else seed
-        self._seed = None  # seeded once; later resets continue the generators
-        return self._view(self.sim.reset(seed))
-
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         obs, reward, terminated, truncated = self.sim.step(actions.detach())
-        return self._view(obs), reward, terminated, truncated
-
-    def close(self) -> None:
-        self.sim.close()
+        return self._obs(obs), reward, terminated, truncated
 
 
 def make_warp_vec_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, *, device: Any = "cpu",
