@@ -23,7 +23,7 @@ def test_unroll_matches_repeated_steps_with_resets():
     hs, h_last = core.unroll(xs, h0, starts)
     h = h0
     for t in range(T):
-        h = core.step(xs[t], h, starts[t])
+        _, h = core.step(xs[t], h, starts[t])
         torch.testing.assert_close(hs[t], h, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(h_last, h, atol=1e-5, rtol=1e-5)
 

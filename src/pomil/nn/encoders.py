@@ -69,8 +69,7 @@ class BeliefEncoder(nn.Module):
         return self.core.initial_state(batch, device)
 
     def step(self, obs, prev_action, h, start):
-        h = self.core.step(self.embed(history_inputs(obs, prev_action, start)), h, start)
-        return h, h
+        return self.core.step(self.embed(history_inputs(obs, prev_action, start)), h, start)
 
     def unroll(self, obs, prev_actions, h0, starts):
         return self.core.unroll(self.embed(history_inputs(obs, prev_actions, starts)), h0, starts)
@@ -80,9 +79,6 @@ class LSTMEncoder(BeliefEncoder):
     """The same with an LSTM core; features h_t, state [h_t, c_t] (n, 2 * hidden_size)."""
 
     core_class = LSTMCore
-
-    def step(self, obs, prev_action, h, start):
-        return self.core.step(self.embed(history_inputs(obs, prev_action, start)), h, start)
 
 
 class AttentionEncoder(nn.Module):
@@ -116,6 +112,7 @@ class AttentionEncoder(nn.Module):
         d = hidden_size
         self.out_size = d
         self.context = context
+        self._slots = context - 1  # the state's window: the earlier steps a query sees
         self.heads = math.gcd(heads, d)  # as many as divide the width (4 by default; fewer for odd widths)
         self.embed = nn.Sequential(nn.Linear(obs_dim + act_dim, d), nn.ELU())
         self.norm1 = nn.LayerNorm(d)
@@ -130,10 +127,6 @@ class AttentionEncoder(nn.Module):
         self.norm_out = nn.LayerNorm(d)
 
     # ------------------------------------------------------------------ state
-    @property
-    def _slots(self) -> int:
-        return self.context - 1
-
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
         return torch.zeros(batch, self._slots * (2 * self.out_size + 1), device=device)
 
@@ -294,12 +287,8 @@ def make_encoder(kind: str, obs_dim: int, act_dim: int, *, hidden_size: int, con
     if obs_delta or not prev_action:
         inner = make_encoder(kind, obs_dim * (2 if obs_delta else 1), act_dim, hidden_size=hidden_size, context=context)
         return InputView(inner, obs_dim, obs_delta, prev_action)
-    if kind == "mlp":
-        return MLPEncoder(obs_dim, act_dim, hidden_size)
-    if kind == "gru":
-        return BeliefEncoder(obs_dim, act_dim, hidden_size)
-    if kind == "lstm":
-        return LSTMEncoder(obs_dim, act_dim, hidden_size)
+    if kind not in ENCODERS:
+        raise ValueError(f"unknown encoder {kind!r}; expected one of {', '.join(map(repr, ENCODERS))}")
     if kind == "attention":
         return AttentionEncoder(obs_dim, act_dim, hidden_size, context)
-    raise ValueError(f"unknown encoder {kind!r}; expected one of {', '.join(map(repr, ENCODERS))}")
+    return {"mlp": MLPEncoder, "gru": BeliefEncoder, "lstm": LSTMEncoder}[kind](obs_dim, act_dim, hidden_size)

@@ -73,8 +73,7 @@ class GaussianPolicy(nn.Module):
         super().__init__()
         self.arch = arch
         self.encoder = make_encoder(arch.encoder, arch.obs_dim, arch.act_dim, hidden_size=arch.hidden_size,
-                                    context=arch.context,
-                                    obs_delta=arch.obs_delta, prev_action=arch.prev_action)
+                                    context=arch.context, obs_delta=arch.obs_delta, prev_action=arch.prev_action)
         feat = self.encoder.out_size
         self.code_embed = nn.Linear(arch.num_codes, feat, bias=False) if arch.num_codes > 0 else None
         self.mean = nn.Sequential(nn.Linear(feat, arch.hidden_size), nn.ELU(),

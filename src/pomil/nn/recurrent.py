@@ -42,55 +42,54 @@ def unroll_by_chunks(run: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Ten
     return torch.cat(outs, dim=0), h
 
 
-class GRUCore(nn.Module):
-    """(x, h, start) -> h with resets by mask."""
+class _Core(nn.Module):
+    """A torch RNN with its state explicit: (x, state, start) -> (h, new state), resets by mask.  Subclasses
+    give ``_run(xs, state) -> (outputs, final state)``, one call of the RNN over a stretch of time."""
+
+    hidden_size: int
+    state_width = 1
+    """The state's columns per hidden unit."""
+
+    def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
+        return torch.zeros(batch, self.state_width * self.hidden_size, device=device)
+
+    def step(self, x: torch.Tensor, state: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x (N, D), state (N, S), start (N,) bool -> (h (N, H), new state (N, S))."""
+        out, state = self._run(x.unsqueeze(0), _reset(state, start))
+        return out[0], state
+
+    def unroll(self, xs: torch.Tensor, h0: torch.Tensor, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """xs (T, N, D), h0 (N, S), starts (T, N) bool -> (hs (T, N, H), final state (N, S)).
+
+        ``hs[t]`` is h after consuming ``xs[t]``.
+        """
+        return unroll_by_chunks(self._run, xs, h0, starts)
+
+
+class GRUCore(_Core):
+    """The GRU core; the state is h (N, H)."""
 
     def __init__(self, input_size: int, hidden_size: int = 128) -> None:
         super().__init__()
         self.hidden_size = hidden_size
         self.gru = nn.GRU(input_size, hidden_size)
 
-    def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
-        return torch.zeros(batch, self.hidden_size, device=device)
-
-    def step(self, x: torch.Tensor, h: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
-        """x (N, D), h (N, H), start (N,) bool -> new h (N, H)."""
-        _, h_new = self.gru(x.unsqueeze(0), _reset(h, start).unsqueeze(0).contiguous())
-        return h_new[0]
-
     def _run(self, xs: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out, h_n = self.gru(xs, h.unsqueeze(0).contiguous())
         return out, h_n[0]
 
-    def unroll(self, xs: torch.Tensor, h0: torch.Tensor, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """xs (T, N, D), h0 (N, H), starts (T, N) bool -> (hs (T, N, H), h_T (N, H)).
 
-        ``hs[t]`` is the state after consuming ``xs[t]``.
-        """
-        return unroll_by_chunks(self._run, xs, h0, starts)
+class LSTMCore(_Core):
+    """The LSTM core; the state is h and c side by side, (N, 2H)."""
 
-
-class LSTMCore(nn.Module):
-    """(x, [h, c], start) -> (h, [h, c]) with resets by mask; the state is h and c side by side, (N, 2H)."""
+    state_width = 2
 
     def __init__(self, input_size: int, hidden_size: int = 128) -> None:
         super().__init__()
         self.hidden_size = hidden_size
         self.lstm = nn.LSTM(input_size, hidden_size)
 
-    def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
-        return torch.zeros(batch, 2 * self.hidden_size, device=device)
-
     def _run(self, xs: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h, c = state.chunk(2, dim=-1)
         out, (h_n, c_n) = self.lstm(xs, (h.unsqueeze(0).contiguous(), c.unsqueeze(0).contiguous()))
         return out, torch.cat([h_n[0], c_n[0]], dim=-1)
-
-    def step(self, x: torch.Tensor, state: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """x (N, D), state (N, 2H), start (N,) bool -> (h (N, H), new state (N, 2H))."""
-        out, state = self._run(x.unsqueeze(0), _reset(state, start))
-        return out[0], state
-
-    def unroll(self, xs: torch.Tensor, h0: torch.Tensor, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """xs (T, N, D), h0 (N, 2H), starts (T, N) bool -> (hs (T, N, H), final state (N, 2H))."""
-        return unroll_by_chunks(self._run, xs, h0, starts)

@@ -65,29 +65,21 @@ def collect(env, policy: GaussianPolicy, value: BeliefHead, *, num_codes: int,
     prev = torch.zeros(n, policy.arch.act_dim, device=device)
     start = torch.ones(n, dtype=torch.bool, device=device)
     alive = torch.ones(n, dtype=torch.bool, device=device)
-    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("obs", "act", "exec", "prev", "start", "logp", "term",
-                                                          "trunc", "mask", "env_reward")}
+    steps: list[dict[str, torch.Tensor]] = []
     with torch_threads(threads):
         while True:
             dist, h_pi = policy.step(obs, prev, h_pi, start, codes)
             action = dist.mean + dist.stddev * torch.randn(dist.mean.shape, generator=generator).to(device)
             executed = execute(action)
-            rec["obs"].append(obs)
-            rec["act"].append(action)
-            rec["exec"].append(executed)
-            rec["prev"].append(prev * (~start).unsqueeze(-1))
-            rec["start"].append(start)
-            rec["logp"].append(dist.log_prob(action).sum(-1))
-            rec["mask"].append(alive)
+            rec = {"obs": obs, "act": action, "exec": executed, "prev": prev * (~start).unsqueeze(-1), "start": start,
+                   "logp": dist.log_prob(action).sum(-1), "mask": alive}
             obs, env_reward, term, trunc = env.step(action)
-            rec["env_reward"].append(env_reward * alive)
-            rec["term"].append(term & alive)
-            rec["trunc"].append(trunc & alive)
+            steps.append({**rec, "env_reward": env_reward * alive, "term": term & alive, "trunc": trunc & alive})
             alive = alive & ~(term | trunc)
             prev, start = executed, torch.zeros_like(start)
             if not bool(alive.any()):
                 break
-    st = {k: torch.stack(v) for k, v in rec.items()}
+    st = {k: torch.stack([step[k] for step in steps]) for k in steps[0]}
     T = st["obs"].shape[0]
     # V(s_0) ... V(s_T): the steps' observations, then the final one (its a_{t-1} the last executed action).
     values, _ = value.unroll(torch.cat([st["obs"], obs.unsqueeze(0)]), torch.cat([st["prev"], prev.unsqueeze(0)]), h0_v,

@@ -37,12 +37,10 @@ def normalize(x: torch.Tensor, mask: torch.Tensor | None = None, eps: float = 1e
     return (x - mean) / (std + eps)
 
 
-def ppo_loss(
-    *, new_logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor,
-    new_values: torch.Tensor, old_values: torch.Tensor, returns: torch.Tensor, entropy: torch.Tensor,
-    mask: torch.Tensor | None = None, clip: float = 0.2, value_clip: float | None = None,
-    vf_coef: float = 0.5, ent_coef: float = 0.0,
-) -> tuple[torch.Tensor, dict[str, float]]:
+def ppo_loss(*, new_logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor, new_values: torch.Tensor,
+             old_values: torch.Tensor, returns: torch.Tensor, entropy: torch.Tensor, mask: torch.Tensor | None = None,
+             clip: float = 0.2, value_clip: float | None = None, vf_coef: float = 0.5,
+             ent_coef: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
     """Clipped surrogate + (optionally clipped) value loss - entropy bonus.
 
     All tensors share one shape; ``mask`` selects the valid entries.

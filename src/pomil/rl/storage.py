@@ -62,15 +62,17 @@ class Rollout:
 
     def __post_init__(self) -> None:
         t, n = self.starts.shape
-        for f in fields(self):
-            x = getattr(self, f.name)
-            if x is None or f.name.startswith("h0_"):
-                continue
+        for name, x in self._per_step().items():
             if tuple(x.shape[:2]) != (t, n):
-                raise ValueError(f"Rollout.{f.name}: expected leading shape ({t}, {n}), got {tuple(x.shape)}")
+                raise ValueError(f"Rollout.{name}: expected leading shape ({t}, {n}), got {tuple(x.shape)}")
         for name in ("h0_policy", "h0_value"):
             if getattr(self, name).shape[0] != n:
                 raise ValueError(f"Rollout.{name}: expected {n} rows, got {tuple(getattr(self, name).shape)}")
+
+    def _per_step(self) -> dict[str, torch.Tensor]:
+        """The (T, N, ...) fields that are set: all but the initial states and the optional ones left None."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if getattr(self, f.name) is not None and not f.name.startswith("h0_")}
 
     @property
     def executed_actions(self) -> torch.Tensor:
@@ -102,18 +104,11 @@ class Rollout:
     def _gather(self, t_idx: torch.Tensor, env: torch.Tensor, h0p: torch.Tensor, h0v: torch.Tensor,
                 zero_first: bool) -> Rollout:
         e_idx = env.unsqueeze(0).expand_as(t_idx)
-        out = {}
-        for f in fields(self):
-            x = getattr(self, f.name)
-            if x is None or f.name.startswith("h0_"):
-                continue
-            out[f.name] = x[t_idx, e_idx]
+        out = {name: x[t_idx, e_idx] for name, x in self._per_step().items()}  # indexing copies
         if zero_first:
             # A window starts from a zero state, as if an episode began there (the
             # encoders then also ignore a_{t-1} at its first step).
-            starts = out["starts"].clone()
-            starts[0] = True
-            out["starts"] = starts
+            out["starts"][0] = True
         return Rollout(**out, h0_policy=h0p, h0_value=h0v)
 
     def sequence_batches(self, num_batches: int, generator: torch.Generator) -> Iterator[Rollout]:
