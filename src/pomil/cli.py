@@ -465,7 +465,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from pomil.sweep import SweepConfig, sweep
+    from pomil.experiment import SweepConfig, sweep
 
     cfg: SweepConfig = config_from_args(SweepConfig, args)
     if cfg.ray:
@@ -565,7 +565,7 @@ def _add_plot(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_sweep(sub: argparse._SubParsersAction) -> None:
-    from pomil.sweep import SweepConfig
+    from pomil.experiment import SweepConfig
 
     sw = sub.add_parser("sweep", help="one training config over seeds and a grid of settings, in parallel on Ray")
     sw.add_argument("sweep_config", metavar="CONFIG",

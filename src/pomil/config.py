@@ -129,13 +129,12 @@ def _check_value(name: str, value: Any, tp: Any, interval: Interval | None) -> N
 
 def check_fields(config: Any) -> None:
     """Type- and range-check every field of a config dataclass (see :func:`option`)."""
-    hints = _resolved_types(type(config))
+    hints = typing.get_type_hints(type(config))
     for f in dataclasses.fields(config):
         _check_value(f.name, getattr(config, f.name), hints[f.name], field_interval(f))
 
 
-def _resolved_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
+_BOOL_WORDS = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False, "off": False}
 
 
 def _coerce(value: Any, tp: Any, key: str) -> Any:
@@ -160,26 +159,16 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         return tuple(_coerce(v, inner, key) for v in value)
     try:
         if tp is bool:
-            if isinstance(value, str):
-                low = value.lower()
-                if low in ("1", "true", "yes", "on"):
-                    return True
-                if low in ("0", "false", "no", "off"):
-                    return False
-                raise ValueError(value)
+            if isinstance(value, str) and value.lower() in _BOOL_WORDS:
+                return _BOOL_WORDS[value.lower()]
             if isinstance(value, bool) or (isinstance(value, int) and value in (0, 1)):
                 return bool(value)
             raise ValueError(value)
-        if tp is int:
-            if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        if tp in (int, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float, str)) or (
+                    tp is int and isinstance(value, float) and not value.is_integer()):
                 raise ValueError(value)
-            if isinstance(value, float) and not value.is_integer():
-                raise ValueError(value)
-            return int(value)
-        if tp is float:
-            if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-                raise ValueError(value)
-            return float(value)
+            return tp(value)
         if tp is str:
             if not isinstance(value, str):
                 raise ValueError(value)
@@ -215,7 +204,7 @@ def check_values(cls: type, values: dict[str, Any], source: str) -> None:
     values = _renamed(cls, values, source, note=False)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     _reject_unknown(values, list(fields), source)
-    hints = _resolved_types(cls)
+    hints = typing.get_type_hints(cls)
     for key, value in values.items():
         if key == "preset" and value == AUTO:
             continue
@@ -238,12 +227,13 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
     values = _renamed(cls, values, source)
     _reject_unknown(values, [f.name for f in dataclasses.fields(cls)], source)  # type: ignore[arg-type]
     presets: dict[str, dict[str, Any]] = getattr(cls, "PRESETS", {})
-    name = values.get("preset", _default_of(cls, "preset")) if presets else None
+    default = next((f.default for f in dataclasses.fields(cls) if f.name == "preset"), None)  # type: ignore[arg-type]
+    name = values.get("preset", default) if presets else None
     if name is not None and name != AUTO:
         if not isinstance(name, str) or name not in presets:
             raise ConfigError(f"config key 'preset': expected one of {[AUTO, *presets]}, got {name!r}")
         values = {**presets[name], **values}
-    hints = _resolved_types(cls)
+    hints = typing.get_type_hints(cls)
     named = {f.name: field_names(f) for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     where = "" if source == "config" else f"{source}: "
     try:
@@ -261,11 +251,6 @@ def from_dict(cls: type[T], values: dict[str, Any], source: str = "config") -> T
 
 AUTO = "auto"
 """The ``preset`` that stands for another, chosen from the demonstrations (:meth:`RunConfig.auto_preset`)."""
-
-
-def _default_of(cls: type, name: str) -> Any:
-    """The default of field ``name`` of config class ``cls`` (None when it has no such field)."""
-    return next((f.default for f in dataclasses.fields(cls) if f.name == name), None)  # type: ignore[arg-type]
 
 
 def resolved(config: T) -> T:

@@ -54,10 +54,11 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import torch
 
-from pomil.config import check_fields, load_config_file, option, resolved, to_dict
+from pomil.config import check_fields, load_config_file, option, parse_kwargs, resolved, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.errors import PomilError
 from pomil.learners import ADVERSARIAL, LEARNERS
+from pomil.learners import learner as learner_named
 from pomil.parallel import run_jobs, usable_cpus
 from pomil.training import write_json
 
@@ -432,8 +433,7 @@ def run_experiment(spec: Spec, how: Execution) -> dict[str, Any]:
              f"{workers} at a time in local worker processes" if workers > 1 else "one after another")
     reused = sum(finished(Path(job.run_dir), job.values) for job in jobs) if how.resume else 0
     again = f"; {reused} finished before, reused; {len(keys) - reused} to run" if how.resume else ""
-    print(f"{spec.name}: {len(spec.rows)} row(s) x {spec.seeds} seed(s) = {len(keys)} runs{again}, {where}",
-          flush=True)
+    print(f"{spec.name}: {len(spec.rows)} row(s) x {spec.seeds} seed(s) = {len(keys)} runs{again}, {where}", flush=True)
 
     def report(r, n, total) -> None:
         line = f"FAILED: {r.error}" if not r.ok else _one_line_result(r.value)
@@ -491,8 +491,7 @@ def collect(spec: Spec, results: dict[tuple[str, int], Any]) -> dict[str, Any]:
         from pomil.eval.tasks import reference_of
 
         md = Demonstrations.load(row.demos.file).metadata
-        data.update(reference=reference_of(md, row.demos.file), env_id=md.get("env_id"),
-                    setting=md.get("setting", ""))
+        data.update(reference=reference_of(md, row.demos.file), env_id=md.get("env_id"), setting=md.get("setting", ""))
     return summarise(data)
 
 
@@ -580,8 +579,7 @@ def draw_figure(data: dict[str, Any], rollouts_path: Path, path: Path) -> bool:
         return True
     with np.load(rollouts_path, allow_pickle=False) as r:
         names = [n for n in ["experts", *data["rows"]] if f"{n}/positions" in r.files]
-        figure1([(n, r[f"{n}/positions"], r[f"{n}/groups"], "mode" if n == "experts" else "code") for n in names],
-                path)
+        figure1([(n, r[f"{n}/positions"], r[f"{n}/groups"], "mode" if n == "experts" else "code") for n in names], path)
     return True
 
 
@@ -852,3 +850,60 @@ def reproduce(spec_name: str, opts: ReproduceOptions) -> dict[str, Any]:
     runs = Path(opts.runs or f"runs/{out.name if opts.out else spec.name}")
     return run_experiment(spec, Execution(out=out, runs=runs, jobs=opts.jobs, ray=opts.ray, address=opts.ray_address,
                                           resume=opts.resume, progress=opts.progress))
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    out: str = option("runs/sweep",
+                      "sweep directory: one folder per setting and seed, metrics.json, table.md, figure.png")
+    seeds: int = option(3, "training seeds per setting (0 .. seeds-1)", within="[1, inf)")
+    ray: bool = option(True,
+                       "run on Ray (a local Ray started in-process unless --address); --no-ray: --jobs at a time "
+                       "in local worker processes")
+    jobs: int = option(0, "with --no-ray: runs at a time, each in its own process on cpus_per_run torch threads (0: "
+                          "one per cpus_per_run usable CPU cores; 1: one after another in this process)",
+                       within="[0, inf)")
+    address: str = option("", "address of an existing Ray cluster (paths must be on storage every node sees)")
+    cpus_per_run: float = option(1.0, "CPUs Ray reserves for each run (also its torch threads)", within="(0, inf)")
+    episodes_per_code: int = option(50, "evaluation rollouts per latent code (and task) at the end of each run",
+                                    within="[1, inf)")
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+def parse_grid(entries: list[str]) -> dict[str, list[Any]]:
+    """``["lr=1e-4,2e-4", "mi_weight=5,10"]`` -> {"lr": [1e-4, 2e-4], "mi_weight": [5, 10]}."""
+    grid: dict[str, list[Any]] = {}
+    for entry in entries:
+        key, sep, values = entry.partition("=")
+        if not sep or not values.strip():
+            raise PomilError(f"--grid: expected key=v1,v2,..., got {entry!r}")
+        grid[key.strip().replace("-", "_")] = [parse_kwargs([f"v={v.strip()}"])["v"] for v in values.split(",")]
+    return grid
+
+
+def sweep_spec(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> Spec:
+    """The experiment a sweep file and its ``--grid`` entries make, every setting checked before anything runs."""
+    base = load_config_file(config_path)
+    learner = str(base.pop("learner", "infogail-pomdp"))
+    learner_named(learner, f"{config_path}: 'learner'")
+    for key in ("out", "seed"):
+        if key in base:
+            raise PomilError(f"{config_path}: '{key}' is set by the sweep for each run; remove it")
+    if not base.get("demos"):
+        raise PomilError(f"{config_path}: 'demos' is required (the demonstrations every run imitates)")
+    row = Row("base", learner, DemosSource(str(base.pop("demos"))), base)
+    rows = expand_grid([row], parse_grid(grid_entries), config_path)
+    return check_spec(Spec(name=Path(config_path).stem, source=config_path, rows=tuple(rows), seeds=cfg.seeds,
+                           row_label="setting", episodes_per_code=cfg.episodes_per_code))
+
+
+def sweep(cfg: SweepConfig, config_path: str, grid_entries: list[str]) -> dict[str, Any]:
+    """``pomil sweep CONFIG``: the config's learner over seeds and a grid of settings, each (setting, seed) a run in
+    ``OUT/<setting>/seed<k>/``; a finished run of the same settings is not run again, a stopped one resumes from its
+    checkpoint, a failed one is reported while the others go on."""
+    spec = sweep_spec(cfg, config_path, grid_entries)
+    out = Path(cfg.out).resolve()
+    return run_experiment(spec, Execution(out=out, runs=out, jobs=cfg.jobs, ray=cfg.ray, address=cfg.address,
+                                          cpus_per_run=cfg.cpus_per_run, resume=True, keep_going=True, progress=False))

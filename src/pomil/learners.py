@@ -101,7 +101,7 @@ ADVERSARIAL = tuple(name for name, learner in LEARNERS.items() if learner.module
 """The adversarial learners (one loop, configured), the ablations included."""
 
 ABLATIONS = tuple(name for name in ADVERSARIAL if name.startswith("igp-"))
-"""InfoGAIL-POMDP with one part taken away (issue: what each part adds)."""
+"""InfoGAIL-POMDP with one part taken away (what each part adds)."""
 
 
 def learner(name: str, where: str = "learner") -> Learner:

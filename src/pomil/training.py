@@ -326,26 +326,26 @@ class DivergenceGuard:
     def value(self, step: int | str, quantity: str, x: float | torch.Tensor) -> None:
         """A scalar or tensor (loss, reward, gradient norm) must be finite everywhere."""
         if isinstance(x, torch.Tensor):
-            if not bool(torch.isfinite(x).all()):
-                bad = x.detach()[~torch.isfinite(x.detach())].flatten()[0].item()
-                self.stop(step, quantity, bad)
+            self._tensor(step, quantity, x.detach())
         elif not math.isfinite(x):
             self.stop(step, quantity, x)
 
     def grads(self, step: int | str, name: str, params: Iterable[torch.nn.Parameter]) -> None:
         """Every gradient of ``params`` (after backward, before the optimiser step) must be finite."""
         for p in params:
-            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
-                self.stop(step, f"{name} gradient", p.grad[~torch.isfinite(p.grad)].flatten()[0].item())
+            if p.grad is not None:
+                self._tensor(step, f"{name} gradient", p.grad)
 
     def params(self, step: int | str, nets: dict[str, torch.nn.Module | None]) -> None:
         """Every parameter and buffer of every net must be finite."""
         for name, net in nets.items():
-            if net is None:
-                continue
-            for key, t in net.state_dict().items():
-                if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-                    self.stop(step, f"{name} parameter '{key}'", t[~torch.isfinite(t)].flatten()[0].item())
+            for key, t in (net.state_dict() if net is not None else {}).items():
+                if t.is_floating_point():
+                    self._tensor(step, f"{name} parameter '{key}'", t)
+
+    def _tensor(self, step: int | str, quantity: str, t: torch.Tensor) -> None:
+        if not bool(torch.isfinite(t).all()):
+            self.stop(step, quantity, t[~torch.isfinite(t)].flatten()[0].item())
 
     def stop(self, step: int | str, quantity: str, bad: float) -> None:
         if self.on_stop is not None:
@@ -540,12 +540,6 @@ class RunLoop:
                 return loop.ckpt_path        # its checkpoint is at the last iteration already
             return loop.run(update, desc=..., key_stats=...)
 
-    :meth:`start` takes the run directory's lock, restores networks, optimisers and RNGs
-    from the checkpoint under ``--resume`` and writes ``config.json``.  :meth:`run` opens the
-    log and calls ``update(iteration) -> stats``, then, each iteration: the divergence
-    guard's check of every parameter; an evaluation every ``eval_every`` iterations and at
-    the end; a log row every ``log_every`` iterations, at the first and the last, and
-    with every evaluation; a checkpoint every ``checkpoint_every`` iterations and at the end.
     ``loop.guard`` is the run's divergence guard (it names the last checkpoint written);
     ``loop.env_steps`` counts the environment steps of a learner that collects them (the
     update adds its own; ``None`` for one that does not), across resumes.
@@ -619,7 +613,10 @@ class RunLoop:
     def run(self, update: Callable[[int], dict[str, float]], *, desc: str, key_stats: tuple[str, ...] = (),
             first_row: dict[str, float] | None = None, evaluate: Callable[[Any], dict[str, float]] | None = None,
             eval_every: int = 0, log_extras: Callable[[], dict[str, float]] | None = None) -> Path:
-        """The iterations after :meth:`start`; returns the checkpoint path.
+        """The iterations after :meth:`start`; returns the checkpoint path.  Each calls ``update(iteration) ->
+        stats``, then the divergence guard's check of every parameter; an evaluation every ``eval_every`` iterations
+        and at the end; a log row every ``log_every`` iterations, at the first and the last, and with every
+        evaluation; a checkpoint every ``checkpoint_every`` iterations and at the end.
 
         A fresh run logs row 0 first: ``first_row`` (a warm start's figures) and the evaluation
         of the initial policy.  ``evaluate(policy) -> stats``; ``log_extras() -> stats``: figures

@@ -55,10 +55,10 @@ from pomil.algos.warm_start import (
     clone_with_continuous_codes,
     demo_batch,
     demo_nll,
-    episodes_within,
     first_step_starts,
     mixture_assignment,
     most_likely_codes,
+    sized_for_episodes,
 )
 from pomil.api import TrainedPolicy
 from pomil.config import RunConfig, option, parse_kwargs, resolved
@@ -111,8 +111,7 @@ class CodeOptions:
                             "at least 2; auto = chosen by the mixture warm start's held-out classification likelihood "
                             "for K = 1..num_codes_max (docs/method.md; 0 in Python) (ignored by gail)",
                             within="[-1, inf)", named={"auto": 0})
-    num_codes_max: int = option(6, "with num_codes auto: the largest K tried (one warm start each)",
-                                within="[2, inf)")
+    num_codes_max: int = option(6, "with num_codes auto: the largest K tried (one warm start each)", within="[2, inf)")
     num_codes_search_iterations: int = option(500, "with num_codes auto: mixture warm-start steps of each K's fit "
                                                    "on the training split, on the fast warm start's schedule "
                                                    "(FAST_WARM_START: lr 3e-3 decaying to 0, the log std at 10x, "
@@ -241,8 +240,7 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
                                               within="[0, inf)")
     eval_every: int = option(5,
                              "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos "
-                             "(0: off)",
-                             within="[0, inf)")
+                             "(0: off)", within="[0, inf)")
     eval_episodes: int = option(10, "evaluation rollouts per code", within="[1, inf)")
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
     checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)",
@@ -272,6 +270,9 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
         "iterations", "lr", "lr_decay", "lr_warmup", "log_std_lr_scale", "fit_log_std", "code_lr_scale", "batch",
         "codes")}
     """Old config keys, still read from config files and checkpoints (old -> new name)."""
+    EPISODE_CAPS: ClassVar[dict[str, str]] = {"num_envs": "max_iteration_steps", "warm_start_batch": "max_batch_steps",
+                                               "critic_batch": "max_batch_steps"}
+    """Episode counts and the step caps they are cut to for long episodes (``sized_for_episodes``)."""
     FOLDED: ClassVar[dict[str, tuple[type, Any]]] = {"shared_value_encoder": (bool, _value_on_policy)}
     """Retired config keys, still read: ``shared_value_encoder`` true is ``belief`` value-on-policy."""
 
@@ -403,8 +404,7 @@ def noisy_expert_actions(expert: PaddedEpisodes, policy: GaussianPolicy,
 
 
 def critic_loss(
-    critic: BeliefHead, expert: tuple, policy: Rollout, *, objective: str, gp_weight: float,
-    generator: torch.Generator,
+    critic: BeliefHead, expert: tuple, policy: Rollout, *, objective: str, gp_weight: float, generator: torch.Generator,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The critic's loss on an expert batch (obs, prev, actions, starts, mask) against a policy batch: the
     Wasserstein estimate's negative, or the discriminator's cross-entropy; plus the gradient penalty on
@@ -522,12 +522,10 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, *, num_cod
     if cfg.belief in ("value-on-policy", "shared"):
         value.encoder = policy.encoder  # one module: the value loss also trains the policy's encoder
     m = Modules(
-        policy=policy,
-        value=value,
+        policy=policy, value=value,
         critic=heads.critic(obs_dim, act_dim, heads_enc, hidden_size=cfg.hidden_size, context=ctx).to(device),
         posterior=(heads.posterior(obs_dim, act_dim, num_codes, encoder=heads_enc, hidden_size=cfg.hidden_size,
-                                   context=ctx,
-                                   code_kind=cfg.code_kind).to(device) if num_codes else None),
+                                   context=ctx, code_kind=cfg.code_kind).to(device) if num_codes else None),
     )
     if cfg.belief == "shared":  # one belief b_t for all four; each loss's own optimiser steps it
         m.critic.encoder = policy.encoder
@@ -704,8 +702,7 @@ def update_critic(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, 
         expert = run.sampler.expert(run.expert, e_act, e_prev, cfg.critic_batch, run.gen)
         with run.precision():
             loss, s = critic_loss(m.critic, expert, run.sampler.policy(roll, cfg.critic_batch, run.gen),
-                                  objective=run.objective, gp_weight=cfg.gradient_penalty,
-                                  generator=run.penalty_gen)
+                                  objective=run.objective, gp_weight=cfg.gradient_penalty, generator=run.penalty_gen)
         run.check(it, "critic loss", s["critic/loss"])
         run.step(it, "critic", loss, m.critic.parameters)
         if cfg.weight_clip > 0 and run.objective == "wasserstein":
@@ -794,8 +791,7 @@ def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
     if cfg.bc_weight > 0:
         resp = run.assignment.update(m.policy)[:, demo_idx] if run.assignment is not None else None
         bc, bc_stats = demo_nll(m.policy, demo_feats, demo, generator=run.gen, num_codes=run.num_codes,
-                                mixture=run.mixture, responsibilities=resp,
-                                codes=run.demo_codes(demo_idx))
+                                mixture=run.mixture, responsibilities=resp, codes=run.demo_codes(demo_idx))
         loss = loss + cfg.bc_weight * bc
         s["ppo/bc_nll"] = bc_stats["bc/nll"]
     run.check(it, "policy loss (PPO)", s["ppo/policy_loss"])
@@ -841,8 +837,7 @@ def iteration(run: AdversarialRun, loop: RunLoop, env: Any, *, clock: PhaseClock
     cfg, m = run.cfg, run.m
     with clock("rollout"):
         roll, next_values, code_idx, env_rewards = collect(env, m.policy, m.value, num_codes=run.num_codes,
-                                                           execute=run.execute,
-                                                           generator=run.gen, device=loop.device,
+                                                           execute=run.execute, generator=run.gen, device=loop.device,
                                                            threads=cfg.rollout_threads, code_kind=cfg.code_kind,
                                                            code_prior=cfg.code_prior)
         stats = {"env/true_return": env_rewards.sum(0).mean().item()}
@@ -929,8 +924,7 @@ def _environment(cfg: AdversarialConfig, device: torch.device):
     evaluate = make_evaluator(cfg, env_info, demos)
     try:
         env = make_vec_env(env_id, env_kwargs, cfg.num_envs, device=device,
-                           observation_mask=env_info["observation_mask"], seed=cfg.seed,
-                           sim=cfg.sim)
+                           observation_mask=env_info["observation_mask"], seed=cfg.seed, sim=cfg.sim)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: {err}") from None
     return demos, env_info, evaluate, env, executed_actions_fn(env_id, env_kwargs)
@@ -974,8 +968,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
             return loop.ckpt_path
         # A checkpoint at iteration 0 is that of a warm start alone (--iterations 0): resuming it goes on from there.
         init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes=num_codes, mixture=run.mixture, cfg=cfg,
-                                    gen=gen, guard=run.guard,
-                                    episode_codes=episode_codes)
+                                    gen=gen, guard=run.guard, episode_codes=episode_codes)
                       if loop.iteration == 0 and not resume and cfg.warm_start_iterations > 0 else {})
         clock = PhaseClock("rollout", "critic", "posterior", "ppo")
         return loop.run(lambda it: iteration(run, loop, env, clock=clock, it=it), desc=cfg.learner, key_stats=KEY_STATS,
@@ -1022,19 +1015,3 @@ def recorded_choice(ckpt_path: Path) -> NumCodesChoice:
     except (TypeError, ValueError):
         raise PomilError(f"{ckpt_path}: cannot resume a num_codes auto run from this checkpoint: it records no chosen "
                          "number of codes") from None
-
-
-def sized_for_episodes(cfg: AdversarialConfig, episode_steps: int) -> AdversarialConfig:
-    """``cfg`` with its episode counts cut to the step caps for episodes of ``episode_steps``: num_envs
-    to max_iteration_steps, warm_start_batch and critic_batch to max_batch_steps (never below 1 episode),
-    with a note on stderr when one is cut.  The paper's 128-step Hopper and 33-step circles stay at
-    the configured counts; Hopper's own 1000 steps get 65 episodes per iteration and batches of 16."""
-    caps = {"num_envs": cfg.max_iteration_steps, "warm_start_batch": cfg.max_batch_steps,
-            "critic_batch": cfg.max_batch_steps}
-    cut = {k: episodes_within(cap, episode_steps) for k, cap in caps.items()}
-    cut = {k: n for k, n in cut.items() if n < getattr(cfg, k)}
-    if cut:
-        print(f"pomil: note: {episode_steps}-step episodes: " + ", ".join(
-            f"{k} {getattr(cfg, k)} -> {n}" for k, n in cut.items()) + " (max_iteration_steps "
-              f"{cfg.max_iteration_steps}, max_batch_steps {cfg.max_batch_steps})", file=sys.stderr)
-    return replace(cfg, **cut)

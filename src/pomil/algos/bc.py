@@ -10,13 +10,13 @@ run.
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import torch
 
-from pomil.algos.warm_start import bc_step, episodes_within
+from pomil.algos.warm_start import bc_step, sized_for_episodes
 from pomil.config import RunConfig, option, parse_kwargs, resolved
 from pomil.data import Demonstrations, load_training_demos
 from pomil.envs import executed_actions_fn
@@ -59,17 +59,8 @@ class BCConfig(RunConfig):
     }
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``;
     ``auto`` is replaced by one of them when training starts (``config.resolved``)."""
-
-
-def sized_for_episodes(config: BCConfig, episode_steps: int) -> BCConfig:
-    """``config`` with batch_episodes cut to max_batch_steps for episodes of ``episode_steps`` (a note
-    on stderr when cut)."""
-    n = episodes_within(config.max_batch_steps, episode_steps)
-    if n >= config.batch_episodes:
-        return config
-    print(f"pomil: note: {episode_steps}-step episodes: batch_episodes {config.batch_episodes} -> {n} "
-          f"(max_batch_steps {config.max_batch_steps})", file=sys.stderr)
-    return replace(config, batch_episodes=n)
+    EPISODE_CAPS: ClassVar[dict[str, str]] = {"batch_episodes": "max_batch_steps"}
+    """Episode counts and the step caps they are cut to for long episodes (``sized_for_episodes``)."""
 
 
 def train_bc(config: BCConfig, resume: bool = False) -> Path:

@@ -162,8 +162,7 @@ def train_expert(cfg: ExpertConfig, resume: bool = False) -> Path:
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * (1.0 - (it - 1) / cfg.iterations)
             roll, next_values, _, raw_rewards = collect(env, policy, value, num_codes=0, execute=execute,
-                                                        generator=gen, device=loop.device,
-                                                        threads=cfg.rollout_threads)
+                                                        generator=gen, device=loop.device, threads=cfg.rollout_threads)
             loop.env_steps += int(roll.mask.sum())
             reward_norm.update(discounted_returns(raw_rewards, roll.mask, cfg.gamma)[roll.mask].unsqueeze(-1))
             loop.guard.value(it, "environment reward", raw_rewards)

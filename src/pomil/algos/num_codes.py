@@ -10,20 +10,12 @@ posterior over the codes.  That is the mixture log-likelihood log (1/K) sum_k p(
 less the entropy of q.  The criterion (:func:`choose_num_codes`) goes forward from the first
 K that gains more than ``min_gain`` nats per step over K = 1 (K = 1 when none does): a larger K
 is taken only when it scores more than ``tolerance`` x the current K's average gain per code
-above it.  Demonstrations from deterministic experts make the likelihood reward any split of one
-expert's episodes: on Hopper Forward/Backward a third code for two branches of the backward
-expert's first steps scored 0.22-0.31 nats per step above K = 2, and over 10 seeds no larger K
-added more than 10% of K 2's gain; on the two and four circle presets every further mode added
-at least 73% of the average gain of the codes before it (docs/method.md).
+above it (the criterion's evidence: docs/method.md, "How many codes").
 
-Why the entropy term: the balanced warm start gives every code 1/K of the episodes, so
-with more codes than modes some codes clone the *same* mode.  Such duplicates leave the
-mixture log-likelihood unchanged (two codes at p each: log(2p / 4) = log(p / 2), the same
-as two codes for two modes), so the plain held-out likelihood cannot tell K = 4 from K = 2
-on two circles, and the fits' noise picked either (measured: K 2 -0.2779, K 4 -0.2764 per
-step).  A duplicated mode leaves its episodes' q split between the duplicates, and the
-entropy charges log 2 nats per such episode: K 4 then scored 0.02 per step below K 2, and
-one circle's episodes split over two codes scored below one code (docs/method.md).
+The entropy term tells duplicates apart: the balanced warm start gives every code 1/K of the episodes, so
+with more codes than modes some codes clone the *same* mode, which leaves the mixture log-likelihood
+unchanged (two codes at p each: log(2p / 4) = log(p / 2)); a duplicated mode splits its episodes' q between
+the duplicates, and the entropy charges log 2 nats per such episode.
 Held-out scores need no parameter count (a BIC's would mean little for networks that
 share all but a code embedding); log-likelihood differences do not depend on the
 actions' units, so ``min_gain`` is in nats and ``tolerance`` a fraction of a gain.

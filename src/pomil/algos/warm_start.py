@@ -11,8 +11,9 @@ schedules and loops that the adversarial learners run before their first iterati
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 import torch
@@ -346,6 +347,21 @@ def most_likely_codes(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions
 def episodes_within(max_steps: int, episode_steps: int) -> int:
     """Whole episodes of ``episode_steps`` in ``max_steps`` steps, at least one."""
     return max(1, max_steps // max(int(episode_steps), 1))
+
+
+def sized_for_episodes(cfg: Any, episode_steps: int) -> Any:
+    """``cfg`` with each episode count of its class's ``EPISODE_CAPS`` cut to the whole episodes of
+    ``episode_steps`` within its step cap (never below 1), with a note on stderr when one is cut: the paper's
+    128-step Hopper and 33-step circles keep the configured counts; Hopper's own 1000 steps get 65 episodes per
+    iteration and batches of 16."""
+    caps = type(cfg).EPISODE_CAPS
+    counts = {k: episodes_within(getattr(cfg, cap), episode_steps) for k, cap in caps.items()}
+    cut = {k: n for k, n in counts.items() if n < getattr(cfg, k)}
+    if cut:
+        print(f"pomil: note: {episode_steps}-step episodes: " + ", ".join(f"{k} {getattr(cfg, k)} -> {n}" for k, n in
+              cut.items()) + " (" + ", ".join(f"{c} {getattr(cfg, c)}" for c in dict.fromkeys(caps.values())) + ")",
+              file=sys.stderr)
+    return replace(cfg, **cut)
 
 
 def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_prev: torch.Tensor,

@@ -1,7 +1,6 @@
 """Batched MuJoCo Hopper: N copies of gymnasium's Hopper-v5 stepped with MuJoCo directly.
 
-Gymnasium's vector environments spend most of their time outside the physics
-(measured on 2 cores: SyncVectorEnv ~5,600 env-steps/s with random actions).
+Gymnasium's vector environments spend most of their time outside the physics.
 :class:`HopperSim` keeps one ``MjData`` per copy and steps them from a small
 thread pool (MuJoCo releases the GIL while it steps), with observations,
 rewards, health checks and resets computed for all copies at once in NumPy.
@@ -261,8 +260,7 @@ class HopperSim(LocomotionSim):
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if env_id not in (HOPPER_ID, HOPPER_SPEED_ID):
             raise ValueError(f"HopperSim runs {HOPPER_ID} and {HOPPER_SPEED_ID}, not {env_id!r}")
-        self.kw = check_env_kwargs(env_id, SPEED_DEFAULTS if env_id == HOPPER_SPEED_ID else HOPPER_DEFAULTS,
-                                   env_kwargs)
+        self.kw = check_env_kwargs(env_id, SPEED_DEFAULTS if env_id == HOPPER_SPEED_ID else HOPPER_DEFAULTS, env_kwargs)
         self.target_velocity = float(self.kw["target_velocity"]) if env_id == HOPPER_SPEED_ID else None
         self.model, _ = self._load(num_envs, "hopper.xml", FRAME_SKIP)
         self.data = [mujoco.MjData(self.model) for _ in range(num_envs)]

@@ -25,8 +25,7 @@ ended keeps its last observation and state and yields reward 0 until the next
 Warp runs on the CPU too (``device="cpu"``; slow, for tests) and on CUDA
 devices, where the ``frame_skip`` physics steps of one env step are captured
 once as a CUDA graph and replayed on Warp's stream, ordered with torch's current
-stream by events.  The CUDA path is not tested on the CPU-only machine this
-module was written on: the tests run on Warp's CPU device.
+stream by events; the tests run on Warp's CPU device.
 """
 
 from __future__ import annotations

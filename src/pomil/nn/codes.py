@@ -13,35 +13,33 @@ quantiles place codes evenly over the prior (evaluation grids, default codes) an
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
 
-CodeKind = Literal["discrete", "continuous"]
-CodePrior = Literal["uniform", "gaussian"]
 CODE_PRIORS = ("uniform", "gaussian")
 LOG_STD_RANGE = (-5.0, 2.0)
 """The continuous posterior's log std is clamped here: std in [0.0067, 7.4].  Without a floor
 log N(c; mu, sigma) grows without bound as sigma shrinks, and with it the reward term."""
 
 
+def _check_prior(prior: str) -> None:
+    if prior not in CODE_PRIORS:
+        raise ValueError(f"unknown code prior {prior!r}; expected one of {list(CODE_PRIORS)}")
+
+
 def sample_prior(prior: str, n: int, dim: int, generator: torch.Generator) -> torch.Tensor:
     """n codes (n, dim) from the prior: uniform on [-1, 1]^dim or a standard Gaussian."""
+    _check_prior(prior)
     if prior == "uniform":
         return 2 * torch.rand(n, dim, generator=generator) - 1
-    if prior == "gaussian":
-        return torch.randn(n, dim, generator=generator)
-    raise ValueError(f"unknown code prior {prior!r}; expected one of {list(CODE_PRIORS)}")
+    return torch.randn(n, dim, generator=generator)
 
 
 def prior_quantile(prior: str, p: torch.Tensor) -> torch.Tensor:
     """The prior's quantile function per dimension at probabilities ``p`` in (0, 1)."""
-    if prior == "uniform":
-        return 2 * p - 1
-    if prior == "gaussian":
-        return math.sqrt(2) * torch.erfinv(2 * p - 1)
-    raise ValueError(f"unknown code prior {prior!r}; expected one of {list(CODE_PRIORS)}")
+    _check_prior(prior)
+    return 2 * p - 1 if prior == "uniform" else math.sqrt(2) * torch.erfinv(2 * p - 1)
 
 
 def prior_grid(prior: str, n: int) -> torch.Tensor:

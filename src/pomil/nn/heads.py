@@ -22,9 +22,8 @@ class BeliefHead(nn.Module):
         super().__init__()
         self.encoder = make_encoder(encoder, obs_dim, act_dim, hidden_size=hidden_size, context=context)
         self.out_dim = out_dim
-        self.mlp = nn.Sequential(
-            nn.Linear(self.encoder.out_size + extra_dim, hidden_size), nn.ELU(), nn.Linear(hidden_size, out_dim)
-        )
+        self.mlp = nn.Sequential(nn.Linear(self.encoder.out_size + extra_dim, hidden_size), nn.ELU(),
+                                 nn.Linear(hidden_size, out_dim))
 
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
         return self.encoder.initial_state(batch, device)
