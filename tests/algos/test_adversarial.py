@@ -381,3 +381,14 @@ def test_belief_encoder_goes_to_every_recurrent_network_and_only_there(belief_en
         m, arch = build_modules(replace(cfg, learner=learner), 2, 2, num_codes=3 if learner == "infogail" else 0,
                                 device="cpu")
         assert arch.encoder == "mlp" and type(m.critic.encoder) is MLPEncoder
+
+
+def test_the_warm_start_can_hand_over_a_floor_on_the_policys_action_noise(demos_path, tmp_path):
+    def log_std(out, **kw):
+        ckpt = train_adversarial(_cfg(demos_path, tmp_path / out, iterations=0, warm_start_iterations=5,
+                                      warm_start_fit_log_std=True, **kw))
+        return load_checkpoint(ckpt)["policy"]["log_std"]
+
+    fitted = log_std("fitted")
+    assert bool((fitted < 0.5).all())  # the circles experts' noise: a fitted std well below e^0.5
+    assert torch.equal(log_std("floor", warm_start_min_log_std=0.5), torch.full_like(fitted, 0.5))
