@@ -662,9 +662,8 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
             stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
     if codes is not None:
         stats.update(warm_start_posterior(m.posterior, expert, expert_prev, codes=codes, cfg=cfg, gen=gen, guard=guard))
-    if bool((m.policy.log_std < cfg.warm_start_min_log_std).any()):
-        with torch.no_grad():
-            m.policy.log_std.clamp_(min=cfg.warm_start_min_log_std)
+    with torch.no_grad():  # the adversarial phase's action noise; a floor below every value leaves them as they are
+        m.policy.log_std.clamp_(min=cfg.warm_start_min_log_std)
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 

@@ -64,9 +64,8 @@ class WarmStartOptions:
                                                           "all demonstration episodes (dataset, refreshed every 10 "
                                                           "steps or pass) or of each random batch (batch: noisier, "
                                                           "see MixtureAssignment)")
-    warm_start_min_log_std: float = option(-20.0, "the warm start ends by raising the policy's log std to at least "
-                                                  "this: the action noise the adversarial phase explores with (-20: "
-                                                  "as the warm start left it)", within="[-20, 2]")
+    warm_start_min_log_std: float = option(-20.0, "raise the warm-started policy's log std to at least this, the "
+                                                  "adversarial phase's action noise (-20: fitted)", within="[-20, 2]")
     posterior_init_iterations: int = option(200, "with warm_start_codes mixture: posterior steps on the "
                                                  "demonstrations, each episode labelled with its most likely code",
                                             within="[0, inf)")

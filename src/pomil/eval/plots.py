@@ -59,10 +59,8 @@ def figure1(panels: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path: str
 def grid_axis(rows: dict[str, dict]) -> str | None:
     """The one settings key with numeric values that a grid varies over every row ("ROW key=value ..."),
     the x axis of :func:`grid_figure`; None when there is no such key or more than one."""
-    named = [{tok.split("=")[0] for tok in name.split() if "=" in tok} for name in rows]
-    keys = sorted(k for k in set.intersection(*named) if all(
-        isinstance(r["settings"].get(k), (int, float)) and not isinstance(r["settings"][k], bool)
-        for r in rows.values())) if named else []
+    common = set.intersection(*[{t.split("=")[0] for t in name.split() if "=" in t} for name in rows] or [set()])
+    keys = [k for k in common if all(type(r["settings"].get(k)) in (int, float) for r in rows.values())]
     return keys[0] if len(keys) == 1 else None
 
 
