@@ -131,7 +131,7 @@ def test_dataset_assignment_keeps_an_over_sampled_cluster_on_its_own_code():
     from pomil.algos.warm_start import (
         MixtureAssignment,
         balanced_responsibilities,
-        episode_log_likelihoods,
+        demonstration_pass,
         mixture_bc_loss,
     )
     from pomil.nn.policy import GaussianPolicy, PolicyArch
@@ -139,8 +139,8 @@ def test_dataset_assignment_keeps_an_over_sampled_cluster_on_its_own_code():
     torch.manual_seed(0)
     data, prev, cluster = _two_clusters()
     policy = GaussianPolicy(PolicyArch(2, 2, "mlp", 32, num_codes=2))
-    ll = episode_log_likelihoods(policy, data, prev, chunk=5)  # chunked == whole
-    torch.testing.assert_close(ll, episode_log_likelihoods(policy, data, prev, chunk=64))
+    ll = demonstration_pass(policy, data, prev, chunk=5)[0]  # chunked == whole
+    torch.testing.assert_close(ll, demonstration_pass(policy, data, prev, chunk=64)[0])
     assert ll.shape == (2, 64)
     # scores as a trained mixture would give them: each cluster far more likely under its own code
     scores = torch.stack([torch.where(cluster == 0, 20.0, -20.0), torch.where(cluster == 0, -20.0, 20.0)])
@@ -171,7 +171,7 @@ def test_dataset_assignment_keeps_an_over_sampled_cluster_on_its_own_code():
             p.add_(0.5)
     assert all(torch.equal(again.update(policy), state["responsibilities"]) for _ in range(2))  # calls 4, 5: kept
     torch.testing.assert_close(again.update(policy),  # call 6: recomputed from the policy
-                               balanced_responsibilities(episode_log_likelihoods(policy, data, prev)), rtol=0, atol=0)
+                               balanced_responsibilities(demonstration_pass(policy, data, prev)[0]), rtol=0, atol=0)
     empty = MixtureAssignment(data, prev).state_dict()
     assert int(empty["calls"]) == 0 and empty["responsibilities"].numel() == 0
     with pytest.raises(ValueError, match="covers 5 episodes, not the 64"):
@@ -205,6 +205,38 @@ def test_mixture_bc_gives_each_cluster_of_episodes_its_own_code(balance):
         mean = policy.unroll_every_code(obs, prev, policy.initial_state(E), torch.zeros(T, E, dtype=torch.bool)).mean
     per_code = sorted(mean[k].mean().item() for k in range(2))
     assert per_code[0] == pytest.approx(-0.6, abs=0.05) and per_code[1] == pytest.approx(0.6, abs=0.05)
+
+
+@pytest.mark.parametrize("encoder", ["gru", "lstm", "attention"])
+def test_windows_from_stored_states_give_the_features_of_one_unroll(encoder):
+    """Episodes of 23 steps (one 17 long) in windows of 5: the pass's features are one unroll's, and each
+    window drawn, unrolled from its stored state, gives exactly that unroll's features at its steps."""
+    from pomil.algos.warm_start import demo_windows, episode_features, window_features
+    from pomil.data import PaddedEpisodes
+    from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+
+    torch.manual_seed(0)
+    T, E, window = 23, 6, 5
+    obs, actions = torch.randn(T, E, 3), torch.randn(T, E, 2)
+    mask = torch.ones(T, E, dtype=torch.bool)
+    mask[17:, 2] = False
+    data, prev = PaddedEpisodes(obs, actions, mask), shift_actions(actions)
+    policy = GaussianPolicy(PolicyArch(3, 2, encoder, 16, num_codes=2, obs_delta=True, context=7))
+    with torch.no_grad():
+        whole = episode_features(policy, obs, prev, mask)
+        feats, states = window_features(policy, obs, prev, mask, window)
+        torch.testing.assert_close(feats, whole, rtol=1e-5, atol=1e-6)
+        assert states.shape[:2] == (5, E)  # ceil(23 / 5) window starts
+        batch, w_prev, h0, starts, episode = demo_windows(data, prev, states, count=40, window=window,
+                                                          generator=torch.Generator().manual_seed(1))
+        got = policy.features(batch.observations, w_prev, h0, starts)[0]
+    assert len(episode) == 29  # 40 asked, 29 windows hold demonstrated steps (episode 2 has 4 of 5)
+    for n in range(len(episode)):  # the window's index: the stored state it starts from
+        j = 0 if starts[0, n] else int((h0[n] - states[:, episode[n]]).abs().sum(1).argmin())
+        steps = torch.arange(j * window, min((j + 1) * window, T))
+        valid = batch.mask[:len(steps), n]
+        assert valid.any() and torch.equal(valid, mask[steps, episode[n]]) and not batch.mask[len(steps):, n].any()
+        torch.testing.assert_close(got[:len(steps), n][valid], whole[steps, episode[n]][valid], rtol=1e-5, atol=1e-6)
 
 
 def test_the_whole_set_assignment_refreshes_every_10_steps_or_once_per_pass():

@@ -53,8 +53,10 @@ from pomil.algos.warm_start import (
     WarmStartOptions,
     clone_demonstrations,
     clone_with_continuous_codes,
+    cloning_window,
     demo_batch,
     demo_nll,
+    episodes_within,
     first_step_starts,
     mixture_assignment,
     most_likely_codes,
@@ -676,10 +678,11 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
     code_nll = _code_cross_entropy if codes.ndim == 1 else _code_gaussian_nll
     post_opt = torch.optim.Adam(post.parameters(), lr=cfg.warm_start_lr)
     starts = first_step_starts(expert.mask)
+    batch = min(cfg.warm_start_batch, episodes_within(cfg.max_batch_steps, expert.mask.shape[0]), len(codes))
     s: dict[str, float] = {}
     with progress_bar(cfg.posterior_init_iterations, "posterior warm start", cfg.progress) as bar:
         for _ in range(cfg.posterior_init_iterations):
-            idx = torch.randint(len(codes), (min(cfg.warm_start_batch, len(codes)),), generator=gen).to(codes.device)
+            idx = torch.randint(len(codes), (batch,), generator=gen).to(codes.device)  # whole episodes
             targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
             with precision_context(cfg.precision, starts.device):
                 loss, s = code_nll(post, expert.observations[:, idx], expert_prev[:, idx],
@@ -777,7 +780,8 @@ def update_policy(run: AdversarialRun, roll: Rollout, it: int = 0) -> dict[str, 
 def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
     """One PPO update of policy and value on minibatch ``b``, with the BC term on demonstrations (bc_weight)."""
     cfg, m = run.cfg, run.m
-    if cfg.bc_weight > 0:  # the BC term's demonstrations go through the policy's encoder with the minibatch
+    windows = run.assignment is not None and run.assignment.window
+    if cfg.bc_weight > 0 and not windows:  # the BC term's demonstrations go through the encoder with the minibatch
         demo, demo_prev, demo_idx = demo_batch(run.expert, run.expert_prev, cfg.warm_start_batch, run.gen)
         feats, demo_feats = policy_and_demo_features(m.policy, b, demo, demo_prev)
     else:
@@ -791,9 +795,14 @@ def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
         vf_coef=cfg.vf_coef, ent_coef=cfg.ent_coef,
     )
     if cfg.bc_weight > 0:
-        resp = run.assignment.update(m.policy)[:, demo_idx] if run.assignment is not None else None
+        if windows:  # windows come with the discrete codes' mixture: no code per episode
+            demo, demo_feats, resp = run.assignment.windows(m.policy, cfg.warm_start_batch, run.gen)
+            codes = None
+        else:
+            resp = run.assignment.update(m.policy)[:, demo_idx] if run.assignment is not None else None
+            codes = run.demo_codes(demo_idx)
         bc, bc_stats = demo_nll(m.policy, demo_feats, demo, generator=run.gen, num_codes=run.num_codes,
-                                mixture=run.mixture, responsibilities=resp, codes=run.demo_codes(demo_idx))
+                                mixture=run.mixture, responsibilities=resp, codes=codes)
         loss = loss + cfg.bc_weight * bc
         s["ppo/bc_nll"] = bc_stats["bc/nll"]
     run.check(it, "policy loss (PPO)", s["ppo/policy_loss"])
@@ -936,7 +945,10 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     """Train (or continue) an adversarial run; returns the checkpoint path."""
     if not cfg.demos:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
-    cfg = sized_for_episodes(resolved(cfg), Demonstrations.load(cfg.demos).episode_lengths.max(initial=0))
+    cfg = resolved(cfg)
+    longest = Demonstrations.load(cfg.demos).episode_lengths.max(initial=0)
+    cfg = sized_for_episodes(cfg, longest, window=cloning_window(cfg, longest, uses_mixture(cfg, int(
+        LEARNERS[cfg.learner].codes))))
     with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
         demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
         choice = None

@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from pomil.algos.warm_start import episode_log_likelihoods
+from pomil.algos.warm_start import demonstration_pass
 from pomil.data import PaddedEpisodes
 from pomil.nn.policy import GaussianPolicy
 
@@ -73,7 +73,7 @@ class HeldoutScore(NamedTuple):
 def heldout_score(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor) -> HeldoutScore:
     """The score of (held-out) whole episodes under the policy's codes, per step: their summed
     classification log-likelihood / their steps."""
-    ll = episode_log_likelihoods(policy, data, prev_actions)
+    ll = demonstration_pass(policy, data, prev_actions)[0]
     steps = data.mask.sum().item()
     per_episode = classification_log_likelihood(ll)
     return HeldoutScore(per_episode.sum().item() / steps, mixture_log_likelihood(ll).sum().item() / steps,

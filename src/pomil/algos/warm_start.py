@@ -66,6 +66,11 @@ class WarmStartOptions:
                                                           "see MixtureAssignment)")
     warm_start_min_log_std: float = option(-20.0, "raise the warm-started policy's log std to at least this, the "
                                                   "adversarial phase's action noise (-20: fitted)", within="[-20, 2]")
+    warm_start_window: int = option(0, "with warm_start_codes mixture and mixture_balance dataset: episodes longer "
+                                         "than this are cloned (warm start and BC term) in windows of this many "
+                                         "steps, each from the policy's state at its start as the last whole-set "
+                                         "pass left it (truncated backpropagation, batches of warm_start_batch "
+                                         "windows; 0: whole episodes; not yet measured on a task)", within="[0, inf)")
     posterior_init_iterations: int = option(200, "with warm_start_codes mixture: posterior steps on the "
                                                  "demonstrations, each episode labelled with its most likely code",
                                             within="[0, inf)")
@@ -138,48 +143,113 @@ class MixtureAssignment:
     onto other codes; balancing over all episodes has no such noise (docs/method.md).
     """
 
-    def __init__(self, data: PaddedEpisodes, prev_actions: torch.Tensor, refresh: int = 10, chunk: int = 256) -> None:
+    def __init__(self, data: PaddedEpisodes, prev_actions: torch.Tensor, refresh: int = 10, chunk: int = 256,
+                 window: int = 0) -> None:
         self.data, self.prev_actions, self.refresh, self.chunk = data, prev_actions, refresh, chunk
+        self.window = window if 0 < window < data.mask.shape[0] else 0
+        """Steps per cloning window (0: whole episodes): the refresh also keeps the policy's state at each
+        window's start, ``states`` (J, E, S), from which :meth:`windows` draws."""
         self.responsibilities: torch.Tensor | None = None
+        self.states: torch.Tensor | None = None
         self._calls = 0
 
     def update(self, policy: GaussianPolicy) -> torch.Tensor:
         """The current responsibilities (K, E), recomputed on every ``refresh``-th call."""
-        if self.responsibilities is None or self._calls % self.refresh == 0:
-            self.responsibilities = balanced_responsibilities(episode_log_likelihoods(policy, self.data,
-                                                                                      self.prev_actions, self.chunk))
+        if (self.responsibilities is None or self._calls % self.refresh == 0
+                or (self.window and self.states is None)):
+            ll, self.states = demonstration_pass(policy, self.data, self.prev_actions, chunk=self.chunk,
+                                                 window=self.window)
+            self.responsibilities = balanced_responsibilities(ll)
         self._calls += 1
         return self.responsibilities
 
+    def windows(self, policy: GaussianPolicy, count: int, generator: torch.Generator
+                ) -> tuple[PaddedEpisodes, torch.Tensor, torch.Tensor]:
+        """``count`` random windows (at most as many as there are) after :meth:`update`: the batch (window,
+        n), the policy's features on it from each window's stored state, and the responsibilities of each
+        window's episode (K, n)."""
+        resp = self.update(policy)
+        assert self.states is not None
+        batch, prev, h0, starts, episode = demo_windows(self.data, self.prev_actions, self.states, count=count,
+                                                        window=self.window, generator=generator)
+        return batch, policy.features(batch.observations, prev, h0, starts)[0], resp[:, episode]
+
     def state_dict(self) -> dict[str, torch.Tensor]:
-        """The calls made and the responsibilities of the last refresh (empty before the first): what a
-        resumed run needs to refresh at the same steps from the same values (``RunLoop.start``'s ``carried``)."""
+        """The calls made, the responsibilities and window states of the last refresh (empty before the first):
+        what a resumed run needs to refresh at the same steps from the same values (``RunLoop.start``'s
+        ``carried``)."""
         resp = self.responsibilities if self.responsibilities is not None else torch.empty(0, 0)
-        return {"calls": torch.tensor(self._calls), "responsibilities": resp.detach().clone()}
+        states = self.states if self.states is not None else torch.empty(0, 0, 0)
+        return {"calls": torch.tensor(self._calls), "responsibilities": resp.detach().clone(),
+                "states": states.detach().clone()}
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         calls, resp = state["calls"], state["responsibilities"]
+        states = state.get("states", torch.empty(0, 0, 0))  # older checkpoints: none (the next call refreshes)
         if not (isinstance(calls, torch.Tensor) and calls.numel() == 1 and not calls.is_floating_point()
-                and int(calls) >= 0 and isinstance(resp, torch.Tensor) and resp.ndim == 2):
+                and int(calls) >= 0 and isinstance(resp, torch.Tensor) and resp.ndim == 2
+                and isinstance(states, torch.Tensor) and states.ndim == 3):
             raise ValueError("the code assignment's state is damaged")
         episodes = self.data.mask.shape[1]
         if resp.numel() and (resp.shape[1] != episodes or not resp.is_floating_point()):
             raise ValueError(f"the code assignment covers {resp.shape[1]} episodes, not the {episodes} demonstrated")
+        if states.numel() and states.shape[1] != episodes:
+            raise ValueError(f"the code assignment's window states cover {states.shape[1]} episodes, not {episodes}")
         self._calls = int(calls)
         self.responsibilities = resp.to(self.data.mask.device) if resp.numel() else None
+        self.states = states.to(self.data.mask.device) if states.numel() and self.window else None
 
 
 @torch.no_grad()
-def episode_log_likelihoods(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor,
-                            chunk: int = 256) -> torch.Tensor:
-    """Each whole episode's log-likelihood under each of the policy's codes, (K, E)."""
-    out = []
+def demonstration_pass(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: torch.Tensor, *, chunk: int = 256,
+                       window: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Each whole episode's log-likelihood under each of the policy's codes, (K, E), and with a ``window``
+    the policy's state at the start of each window of that many steps, (J, E, S) (else None)."""
+    lls, states = [], []
     for start in range(0, data.mask.shape[1], chunk):
         idx = torch.arange(start, min(start + chunk, data.mask.shape[1]), device=data.mask.device)
         part = data.select(idx)
-        out.append(_code_log_likelihoods(
-            policy.dist_every_code(episode_features(policy, part.observations, prev_actions[:, idx], part.mask)), part))
-    return torch.cat(out, dim=1)
+        if window:
+            feats, part_states = window_features(policy, part.observations, prev_actions[:, idx], part.mask, window)
+            states.append(part_states)
+        else:
+            feats = episode_features(policy, part.observations, prev_actions[:, idx], part.mask)
+        lls.append(_code_log_likelihoods(policy.dist_every_code(feats), part))
+    return torch.cat(lls, dim=1), torch.cat(states, dim=1) if window else None
+
+
+def window_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor, mask: torch.Tensor,
+                    window: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The policy's encoder over a (T, B) block of whole episodes unrolled ``window`` steps at a time with
+    the state carried (the features of one unroll), and the state at each window's start, (J, B, S)."""
+    starts, h = first_step_starts(mask), policy.initial_state(mask.shape[1], mask.device)
+    feats, states = [], []
+    for a in range(0, mask.shape[0], window):
+        states.append(h)
+        f, h = policy.features(obs[a:a + window], prev_actions[a:a + window], h, starts[a:a + window])
+        feats.append(f)
+    return torch.cat(feats), torch.stack(states)
+
+
+def demo_windows(data: PaddedEpisodes, prev_actions: torch.Tensor, states: torch.Tensor, *, count: int, window: int,
+                 generator: torch.Generator) -> tuple[PaddedEpisodes, torch.Tensor, torch.Tensor, torch.Tensor,
+                                                      torch.Tensor]:
+    """``count`` random windows of ``window`` steps (at most as many as hold a demonstrated step), drawn
+    with replacement from those that start at a multiple of ``window`` within an episode: the batch
+    (window, n) (steps past the episode's end masked out), previous actions, the stored states
+    ``states`` (J, E, S) at their starts (n, S), their episode starts (window, n) and their episodes (n,)."""
+    steps, dev = data.mask.shape[0], data.mask.device
+    first = torch.arange(states.shape[0], device=dev).unsqueeze(1) * window
+    pairs = (first < data.mask.sum(0)).nonzero()  # (window index, episode) with a demonstrated step
+    pick = pairs[torch.randint(len(pairs), (min(count, len(pairs)),), generator=generator).to(dev)]
+    j, episode = pick[:, 0], pick[:, 1]
+    t = j.unsqueeze(0) * window + torch.arange(window, device=dev).unsqueeze(1)  # (window, n)
+    inside, e = t < steps, episode.unsqueeze(0).expand_as(t)
+    t = t.clamp(max=steps - 1)
+    batch = PaddedEpisodes(data.observations[t, e], data.actions[t, e], data.mask[t, e] & inside)
+    starts = torch.zeros_like(batch.mask)
+    starts[0] = j == 0
+    return batch, prev_actions[t, e], states[j, episode], starts, episode
 
 
 def _code_log_likelihoods(dist_every_code, data: PaddedEpisodes) -> torch.Tensor:
@@ -217,6 +287,9 @@ def demo_bc_loss(policy: GaussianPolicy, data: PaddedEpisodes, prev_actions: tor
     with ``mixture`` and an ``assignment``, each episode is cloned by the codes it assigns; with
     ``codes_of``, episode ``i`` under the code vector ``codes_of(i)`` (continuous codes: each
     episode's own, :class:`EpisodeCodes`, whose batch rows then learn too; or random ones)."""
+    if mixture and assignment is not None and assignment.window:
+        batch, feats, resp = assignment.windows(policy, batch_episodes, generator)
+        return demo_nll(policy, feats, batch, generator=generator, mixture=True, responsibilities=resp)
     batch, prev, idx = demo_batch(data, prev_actions, batch_episodes, generator)
     resp = assignment.update(policy)[:, idx] if mixture and assignment is not None else None
     return demo_nll(policy, episode_features(policy, batch.observations, prev, batch.mask), batch, generator=generator,
@@ -351,13 +424,15 @@ def episodes_within(max_steps: int, episode_steps: int) -> int:
     return max(1, max_steps // max(int(episode_steps), 1))
 
 
-def sized_for_episodes(cfg: Any, episode_steps: int) -> Any:
+def sized_for_episodes(cfg: Any, episode_steps: int, *, window: int = 0) -> Any:
     """``cfg`` with each episode count of its class's ``EPISODE_CAPS`` cut to the whole episodes of
     ``episode_steps`` within its step cap (never below 1), with a note on stderr when one is cut: the paper's
     128-step Hopper and 33-step circles keep the configured counts; Hopper's own 1000 steps get 65 episodes per
-    iteration and batches of 16."""
+    iteration and critic batches of 16.  With a cloning ``window`` (:func:`cloning_window`) the cloning batch
+    counts windows of that many steps."""
     caps = type(cfg).EPISODE_CAPS
-    counts = {k: episodes_within(getattr(cfg, cap), episode_steps) for k, cap in caps.items()}
+    counts = {k: episodes_within(getattr(cfg, cap), window if window and k == "warm_start_batch" else episode_steps)
+              for k, cap in caps.items()}
     cut = {k: n for k, n in counts.items() if n < getattr(cfg, k)}
     if cut:
         print(f"pomil: note: {episode_steps}-step episodes: " + ", ".join(f"{k} {getattr(cfg, k)} -> {n}" for k, n in
@@ -366,15 +441,25 @@ def sized_for_episodes(cfg: Any, episode_steps: int) -> Any:
     return replace(cfg, **cut)
 
 
+def cloning_window(cfg: AdversarialConfig, episode_steps: int, mixture: bool) -> int:
+    """The steps of the warm start's and BC term's cloning windows for episodes of ``episode_steps`` (0: whole
+    episodes): ``warm_start_window`` where the dataset-wide assignment keeps the windows' states and the
+    episodes are longer."""
+    window = cfg.warm_start_window
+    return window if mixture and cfg.mixture_balance == "dataset" and 0 < window < episode_steps else 0
+
+
 def mixture_assignment(cfg: AdversarialConfig, expert: PaddedEpisodes, expert_prev: torch.Tensor,
                        mixture: bool) -> MixtureAssignment | None:
     """The dataset-wide code assignment of the mixture warm start and BC term (None: balanced per batch),
-    refreshed every 10 steps or once per pass over the episodes, whichever is rarer: the refresh (one
-    forward pass over every episode) then costs at most about a third of the training steps between."""
+    refreshed every 10 steps or once per pass over the episodes (or windows), whichever is rarer: the refresh
+    (one forward pass over every episode) then costs at most about a third of the training steps between."""
     if not (mixture and cfg.mixture_balance == "dataset"):
         return None
-    refresh = max(10, math.ceil(expert.mask.shape[1] / cfg.warm_start_batch))
-    return MixtureAssignment(expert, expert_prev, refresh=refresh)
+    steps, episodes = expert.mask.shape
+    window = cloning_window(cfg, steps, mixture)
+    refresh = max(10, math.ceil(episodes * (math.ceil(steps / window) if window else 1) / cfg.warm_start_batch))
+    return MixtureAssignment(expert, expert_prev, refresh=refresh, window=window)
 
 
 CODE_SPREAD_EVERY = 10
