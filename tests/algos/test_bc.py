@@ -224,7 +224,7 @@ def test_windows_from_stored_states_give_the_features_of_one_unroll(encoder):
     policy = GaussianPolicy(PolicyArch(3, 2, encoder, 16, num_codes=2, obs_delta=True, context=7))
     with torch.no_grad():
         whole = episode_features(policy, obs, prev, mask)
-        feats, states = window_features(policy, obs, prev, mask, window)
+        feats, states = window_features(policy, obs, prev, mask=mask, window=window)
         torch.testing.assert_close(feats, whole, rtol=1e-5, atol=1e-6)
         assert states.shape[:2] == (5, E)  # ceil(23 / 5) window starts
         batch, w_prev, h0, starts, episode = demo_windows(data, prev, states, count=40, window=window,

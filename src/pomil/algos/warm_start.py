@@ -210,7 +210,8 @@ def demonstration_pass(policy: GaussianPolicy, data: PaddedEpisodes, prev_action
         idx = torch.arange(start, min(start + chunk, data.mask.shape[1]), device=data.mask.device)
         part = data.select(idx)
         if window:
-            feats, part_states = window_features(policy, part.observations, prev_actions[:, idx], part.mask, window)
+            feats, part_states = window_features(policy, part.observations, prev_actions[:, idx],
+                                                 mask=part.mask, window=window)
             states.append(part_states)
         else:
             feats = episode_features(policy, part.observations, prev_actions[:, idx], part.mask)
@@ -218,7 +219,7 @@ def demonstration_pass(policy: GaussianPolicy, data: PaddedEpisodes, prev_action
     return torch.cat(lls, dim=1), torch.cat(states, dim=1) if window else None
 
 
-def window_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor, mask: torch.Tensor,
+def window_features(policy: GaussianPolicy, obs: torch.Tensor, prev_actions: torch.Tensor, *, mask: torch.Tensor,
                     window: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The policy's encoder over a (T, B) block of whole episodes unrolled ``window`` steps at a time with
     the state carried (the features of one unroll), and the state at each window's start, (J, B, S)."""
