@@ -147,18 +147,24 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def training_speed(demos: str, device: str, num_envs: int, iterations: int, sim: str) -> float:
+def training_speed(demos: str, device: str, num_envs: int, iterations: int, sim: str) -> tuple[float, str]:
+    """(InfoGAIL-POMDP training env-steps/s over ``iterations``, each phase's share of the time)."""
     from pomil.algos.adversarial import AdversarialConfig, train_adversarial
     from pomil.config import from_dict
 
     with tempfile.TemporaryDirectory() as tmp:
         values = {"learner": "infogail-pomdp", "demos": demos, "out": tmp, "iterations": iterations,
                   "warm_start_iterations": 0, "policy_warmup_iterations": 0, "eval_every": 0, "log_every": 1,
-                  "progress": False, "device": device, "num_envs": num_envs, "sim": sim}
+                  "progress": False, "device": device, "num_envs": num_envs, "sim": sim,
+                  "max_iteration_steps": num_envs * 1000}  # every env an episode, whatever its length
         train_adversarial(from_dict(AdversarialConfig, values, "benchmark"))
         import csv
 
-        return float(list(csv.DictReader(open(Path(tmp) / "metrics.csv", newline="")))[-1]["time/env_steps_per_s"])
+        with open(Path(tmp) / "metrics.csv", newline="") as f:
+            last = list(csv.DictReader(f))[-1]
+        shares = ", ".join(f"{k.removeprefix('time/share_')} {float(v):.0%}" for k, v in last.items()
+                           if k.startswith("time/share_"))
+        return float(last["time/env_steps_per_s"]), shares
 
 
 def main() -> None:
@@ -200,13 +206,17 @@ def main() -> None:
     for n in [int(v) for v in args.num_envs.split(",") if v.strip()]:
         rate, warm = warp_speed(args.env_id, kwargs, args.device, n, args.steps, args.warmup)
         rows.append((f"physics, WarpSim on {args.device} ({n} envs; warm-up {warm:.1f} s)", rate))
+        print(f"{rows[-1][0]}: {rate:,.0f} env-steps/s", flush=True)
         if not args.no_cpu and args.env_id == HOPPER_ID:
             name = f"physics, HopperSim on {usable_cpus()} CPU cores ({n} envs)"
             rows.append((name, cpu_speed(kwargs, n, args.steps)))
+            print(f"{name}: {rows[-1][1]:,.0f} env-steps/s", flush=True)
     for n in [int(v) for v in args.train_envs.split(",")] if args.train_envs else []:
         for sim in args.train_sims.split(","):
-            rows.append((f"InfoGAIL-POMDP training, sim {sim}, device {args.device} ({n} envs, all updates)",
-                         training_speed(args.demos, args.device, n, args.iterations, sim)))
+            rate, shares = training_speed(args.demos, args.device, n, args.iterations, sim)
+            rows.append((f"InfoGAIL-POMDP training, sim {sim}, device {args.device} ({n} envs, all updates)", rate))
+            print(f"InfoGAIL-POMDP training, sim {sim}, {n} envs: {rate:,.0f} env-steps/s; time shares: {shares}",
+                  flush=True)
     print(f"{'what':78s} {'env-steps/s':>12s}")
     for name, v in rows:
         print(f"{name:78s} {v:12,.0f}")

@@ -820,10 +820,12 @@ def ppo_step(run: AdversarialRun, b: Rollout, it: int = 0) -> dict[str, float]:
 
 
 class PhaseClock:
-    """Wall time spent in each phase of the loop, summed over iterations (``with clock("critic"): ...``)."""
+    """Wall time spent in each phase of the loop, summed over iterations (``with clock("critic"): ...``); on a
+    CUDA ``device`` each phase ends by waiting for the GPU, so that a phase's share is its GPU work."""
 
-    def __init__(self, *phases: str) -> None:
+    def __init__(self, *phases: str, device: torch.device | None = None) -> None:
         self.spent = dict.fromkeys(phases, 0.0)
+        self.cuda = device is not None and device.type == "cuda"
 
     @contextmanager
     def __call__(self, phase: str) -> Iterator[None]:
@@ -831,6 +833,8 @@ class PhaseClock:
         try:
             yield
         finally:
+            if self.cuda:
+                torch.cuda.synchronize()
             self.spent[phase] += time.perf_counter() - t0
 
     def shares(self) -> dict[str, float]:
@@ -984,7 +988,7 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes=num_codes, mixture=run.mixture, cfg=cfg,
                                     gen=gen, guard=run.guard, episode_codes=episode_codes)
                       if loop.iteration == 0 and not resume and cfg.warm_start_iterations > 0 else {})
-        clock = PhaseClock("rollout", "critic", "posterior", "ppo")
+        clock = PhaseClock("rollout", "critic", "posterior", "ppo", device=loop.device)
         return loop.run(lambda it: iteration(run, loop, env, clock=clock, it=it), desc=cfg.learner, key_stats=KEY_STATS,
                         first_row={**(choice.stats() if choice else {}), **init_stats}, evaluate=evaluate,
                         eval_every=cfg.eval_every,
