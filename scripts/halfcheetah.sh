@@ -9,14 +9,14 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 pomil=.venv/bin/pomil
 for task in forward backward; do
-  if [ ! -f "data/experts/halfcheetah-$task.pt" ]; then
+  if [ ! -f "src/pomil/experts/halfcheetah-$task.pt" ]; then
     $pomil experts train --env-id HalfCheetah-v5 --task "$task" --setting paper --out "runs/experts/halfcheetah-$task"
     bash scripts/ship_expert.sh "runs/experts/halfcheetah-$task" "halfcheetah-$task"
   fi
 done
 if [ ! -f data/halfcheetah-paper.npz ]; then
   for task in forward backward; do
-    $pomil demos record --expert "data/experts/halfcheetah-$task.pt" --task "$task" --episodes 200 \
+    $pomil demos record --expert "src/pomil/experts/halfcheetah-$task.pt" --task "$task" --episodes 200 \
       --observation-mask positions-only --seed 0 --out "runs/demos/halfcheetah-$task.npz"
   done
   $pomil demos merge runs/demos/halfcheetah-forward.npz runs/demos/halfcheetah-backward.npz --out data/halfcheetah-paper.npz

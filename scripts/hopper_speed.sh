@@ -14,7 +14,7 @@ pomil=.venv/bin/pomil
 SPEEDS="0.6 1.2 1.8"
 STEPS=256
 for v in $SPEEDS; do
-  if [ ! -f "data/experts/hopper-speed-$v.pt" ]; then
+  if [ ! -f "src/pomil/experts/hopper-speed-$v.pt" ]; then
     $pomil experts train --env-id pomil/HopperSpeed-v0 --task none --setting paper \
       --env-kwargs "target_velocity=$v,max_episode_steps=$STEPS" --iterations 150 --out "runs/experts/hopper-speed-$v"
     bash scripts/ship_expert.sh "runs/experts/hopper-speed-$v" "hopper-speed-$v"
@@ -24,7 +24,7 @@ demos=data/hopper-speed.npz
 if [ ! -f "$demos" ]; then
   recordings=()
   for v in $SPEEDS; do
-    $pomil demos record --expert "data/experts/hopper-speed-$v.pt" --episodes 200 --observation-mask positions-only \
+    $pomil demos record --expert "src/pomil/experts/hopper-speed-$v.pt" --episodes 200 --observation-mask positions-only \
       --seed 0 --out "runs/demos/hopper-speed-$v.npz"
     recordings+=("runs/demos/hopper-speed-$v.npz")
   done

@@ -9,7 +9,7 @@ from pomil.api import TrainedPolicy
 from pomil.cli import main
 from pomil.data import Demonstrations, check_demos_env
 from pomil.envs import executed_actions_fn, make_vec_env
-from pomil.envs.locomotion import HOPPER_ID, hopper_kwargs
+from pomil.envs.locomotion import HOPPER_EXPERTS, HOPPER_ID, SHIPPED_EXPERTS, hopper_kwargs
 from pomil.eval.tasks import reference_of, rollout_locomotion
 from pomil.nn import heads
 from pomil.nn.policy import GaussianPolicy, PolicyArch
@@ -17,7 +17,7 @@ from pomil.rl.collect import collect
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMOS = ROOT / "data" / "hopper-paper.npz"
-EXPERTS = {t: ROOT / "data" / "experts" / f"hopper-{t}.pt" for t in ("forward", "backward")}
+EXPERTS = HOPPER_EXPERTS["paper"]
 
 
 def test_shipped_demonstrations_load_and_validate():
@@ -33,6 +33,20 @@ def test_shipped_demonstrations_load_and_validate():
     for task in ("forward", "backward"):  # experts well above standing still
         assert ref["expert_returns"][task] > ref["still_returns"][task] + 100
         assert ref["expert_displacement"][task] > 1.0
+
+
+def test_the_shipped_experts_are_package_data():
+    """Found inside the package wherever it is installed (not through the current folder), and named by the
+    package data the wheel takes."""
+    import tomllib
+
+    import pomil
+
+    assert Path(pomil.__file__).parent / "experts" == SHIPPED_EXPERTS
+    paths = [Path(p) for setting in HOPPER_EXPERTS.values() for p in setting.values()]
+    assert len(paths) == 4 and all(p.is_file() and p.parent == SHIPPED_EXPERTS for p in paths)
+    package_data = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    assert "experts/*" in package_data["pomil"]
 
 
 def test_shipped_experts_reproduce_their_recorded_returns():
@@ -114,7 +128,8 @@ def test_standard_setting_records_from_the_shipped_standard_experts(tmp_path):
     assert "N(0, 0.1^2) action noise (DART)" in demos.metadata["merged_from"][0]["source"]  # the setting's noise
 
 
-def test_cli_demos_hopper_records_with_the_settings_action_noise_and_experts(tmp_path, capsys):
+def test_cli_demos_hopper_records_with_the_settings_action_noise_and_experts(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # from any folder: the shipped experts come from the package
     std = ["--episodes", "1"]  # the standard setting's own shipped experts, without naming them
     cases = {"paper": (["--episodes", "1"], "no"), "standard": (std, "0.1"),
              "standard-clean": ([*std, "--action-noise", "0"], "no")}

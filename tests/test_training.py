@@ -271,7 +271,8 @@ def test_a_second_run_into_a_busy_directory_is_refused_in_one_line(demos_path, t
 
 
 def test_two_real_runs_into_one_directory(demos_path, tmp_path):
-    """While a run writes, a second one into its directory is refused and writes nothing there."""
+    """While a run writes, a second one into its directory is refused and writes nothing there, even with
+    --overwrite (which replaces a run only once it holds the directory's lock)."""
     out = tmp_path / "two"
     args = [sys.executable, "-m", "pomil.cli", "train", "bc", "--demos", str(demos_path), "--out", str(out),
             "--policy", "mlp", "--hidden-size", "8", "--batch-episodes", "8", "--no-progress"]
@@ -282,8 +283,8 @@ def test_two_real_runs_into_one_directory(demos_path, tmp_path):
         while not (out / "config.json").exists() and first.poll() is None:  # until the first run has started
             time.sleep(0.05)
         assert first.poll() is None, first.stderr.read()
-        second = subprocess.run([*args, "--iterations", "2", "--seed", "2"], env=env, capture_output=True, text=True,
-                                timeout=900)
+        second = subprocess.run([*args, "--iterations", "2", "--seed", "2", "--overwrite"], env=env,
+                                capture_output=True, text=True, timeout=900)
         assert first.poll() is None  # still writing
     finally:
         first.kill()
@@ -294,6 +295,35 @@ def test_two_real_runs_into_one_directory(demos_path, tmp_path):
     assert len(list((out / "tb").iterdir())) == 1  # one run's event file
     if (out / "checkpoint.pt").exists():
         assert load_checkpoint(out)["config"]["seed"] == 1
+
+
+def test_a_run_into_a_directory_holding_one_is_refused_unless_overwrite_or_resume(demos_path, tmp_path, capsys):
+    """A second run into a finished run's directory is one line, exit 2, and changes nothing there; --overwrite
+    replaces the run (its tb/ events too); --resume goes on with it."""
+    out = tmp_path / "held"
+    train_bc(_bc(demos_path, out, iterations=5))
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    events = sorted(p.name for p in (out / "tb").iterdir())
+    code = main(["train", "bc", "--demos", str(demos_path), "--out", str(out), "--iterations", "2", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and err == (f"pomil: error: {out} holds a run (checkpoint.pt, metrics.csv, config.json, tb): "
+                                 "--resume goes on with it, --overwrite replaces it, or choose another --out\n")
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+    train_bc(_bc(demos_path, out, iterations=3, seed=4, overwrite=True))
+    assert load_checkpoint(out)["iteration"] == 3 and json.loads((out / "config.json").read_text())["seed"] == 4
+    assert max(int(r["iteration"]) for r in csv.DictReader((out / "metrics.csv").read_text().splitlines())) == 3
+    assert len(list((out / "tb").iterdir())) == 1 and sorted(p.name for p in (out / "tb").iterdir()) != events
+    train_bc(_bc(demos_path, out, iterations=5, seed=4), resume=True)
+    assert load_checkpoint(out)["iteration"] == 5
+
+
+def test_each_learner_has_its_own_default_run_directory():
+    assert BCConfig().default_out() == "runs/bc-gru" and BCConfig(policy="mlp").default_out() == "runs/bc-mlp"
+    assert [AdversarialConfig(learner=n).default_out() for n in ("gail", "infogail", "infogail-pomdp")] == [
+        "runs/gail", "runs/infogail", "runs/infogail-pomdp"]
+    assert ExpertConfig(task="backward", setting="standard").default_out() == "runs/expert-hopper-backward-standard"
+    cheetah = ExpertConfig(env_id="HalfCheetah-v5", task="forward")
+    assert cheetah.default_out() == "runs/expert-halfcheetah-forward-paper"
 
 
 def test_a_lock_left_by_a_killed_run_is_taken_over_by_resume(demos_path, tmp_path):

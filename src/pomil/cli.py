@@ -144,7 +144,7 @@ class HopperDemosConfig:
     setting: Literal["paper", "standard"] = option("paper", "paper: 128 steps, no unhealthy termination; "
                                                             "standard: Hopper's own 1000 steps")
     forward_expert: str = option("", "forward expert checkpoint (pomil experts hopper); default the setting's "
-                                     "shipped one, data/experts/hopper[-standard]-forward.pt")
+                                     "shipped one, pomil/experts/hopper[-standard]-forward.pt in the package")
     backward_expert: str = option("", "backward expert checkpoint; default the setting's shipped one")
     observation_mask: str = option("positions-only",
                                    "what the learner observes: positions-only, velocities, or comma-separated indices")
@@ -257,7 +257,8 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
         for task, path in experts.items():
             if not Path(path).is_file():
                 raise PomilError(f"{path}: no {task} expert checkpoint there (train one: pomil experts hopper --task "
-                                 f"{task})")
+                                 f"{task} --setting {cfg.setting}; then pass --{task}-expert "
+                                 f"runs/expert-hopper-{task}-{cfg.setting}/checkpoint.pt)")
         demos = record_hopper_demos(experts, episodes, cfg.setting, seed=cfg.seed,
                                     observation_mask=_mask_arg(cfg.observation_mask), action_noise=noise)
     demos.save(out)

@@ -387,13 +387,21 @@ class RunConfig:
     demos_per_mode: int = option(0, "train on N demonstration episodes of each mode (0: all), drawn with the run's "
                                     "seed from each labelled mode; unlabelled demonstrations: the first N x modes "
                                     "episodes", within="[0, inf)")
-    out: str = option("runs/run", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
+    out: str = option("", "run directory: checkpoint.pt, metrics.csv, tb/, config.json ('': runs/ and the learner's "
+                          "name, an expert's runs/expert-ENV-TASK-SETTING)")
+    overwrite: bool = option(False, "replace the run already in --out (its checkpoint, metrics.csv, config.json and "
+                                    "tb/ go first); without it (or --resume) a run into a directory that holds one "
+                                    "is refused")
     seed: int = option(0, "random seed (same seed, same run on CPU)", within="[0, 4294967295]")
     log_every: int = option(25, "iterations between log rows", within="[1, inf)")
     checkpoint_every: int = option(500, "iterations between checkpoints (one is always written at the end)",
                                    within="[1, inf)")
     device: str = option("cpu", "cpu, cuda, cuda:N or auto")
     progress: bool = option(True, "show a progress bar")
+
+    def default_out(self) -> str:
+        """The run directory when ``out`` is empty."""
+        return "runs/run"
 
     TERMINATING: typing.ClassVar[str] = "terminating"
     """The preset that ``preset`` auto stands for when the demonstrations' environment ends episodes on failure."""

@@ -306,7 +306,8 @@ def run_one(job: RunJob) -> dict[str, Any]:
     if job.resume and finished(out, job.values):
         return json.loads(done.read_text())
     trainer = LEARNERS[job.learner]
-    cfg = resolved(trainer.make_config({**job.values, "out": job.run_dir, "seed": seed, "progress": job.progress},
+    cfg = resolved(trainer.make_config({**job.values, "out": job.run_dir, "seed": seed, "progress": job.progress,
+                                        "overwrite": True},  # the experiment's own runs: a new run replaces one
                                        source=f"run {job.run_dir}"))  # the results record the preset run
     again = job.resume and (out / "checkpoint.pt").exists()
     if again:
@@ -331,7 +332,7 @@ def finished(run_dir: Path, values: dict[str, Any]) -> bool:
         return False
 
 
-_RUN_FIELDS = ("out", "seed", "progress", "demos")
+_RUN_FIELDS = ("out", "seed", "progress", "demos", "overwrite")
 """Config fields that differ between the runs of one row (or between machines), not settings."""
 
 

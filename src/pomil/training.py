@@ -22,6 +22,7 @@ import json
 import math
 import os
 import random
+import shutil
 import socket
 import sys
 import time
@@ -167,10 +168,13 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return payload
 
 
+RUN_FILES = ("checkpoint.pt", "metrics.csv", "config.json", "tb")
+"""What a run writes into its directory: a directory holding any of them holds a run."""
+
 # Settings a resumed run may change: they do not alter what is computed (``out``: a run
 # directory may be moved), except the learning rates, which may be lowered to continue
 # a run that diverged.
-RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device", "out",
+RESUMABLE_CHANGES = frozenset({"iterations", "progress", "checkpoint_every", "log_every", "device", "out", "overwrite",
                                "lr", "lr_value", "lr_critic", "lr_posterior", "warm_start_lr"})
 
 
@@ -376,8 +380,8 @@ class RunLock:
     and start time.  The kernel drops the lock when its process ends, however
     it ends, so a lock file left by a killed run (its process gone) is stale:
     the next run into the directory takes it over.  That run may be a
-    ``--resume`` (which continues from the killed run's last checkpoint) or a
-    fresh run (which starts over, as it would in a finished run's directory);
+    ``--resume`` (which continues from the killed run's last checkpoint) or an
+    ``--overwrite`` (which starts over, as it would in a finished run's directory);
     either way a note says so.  Used as ``with RunLock(dir) as lock: ...
     lock.acquire(resume)``: acquired when the run is about to write, released
     (and the file removed) when the block ends.
@@ -547,7 +551,11 @@ class RunLoop:
 
     def __init__(self, config: Any, *, algo: str, resume: bool = False, hints: dict[str, str]) -> None:
         self.config, self.algo, self.resume = config, algo, resume
-        self.dir = Path(config.out)
+        self.dir = Path(config.out or config.default_out())
+        held = [name for name in RUN_FILES if (self.dir / name).exists()]
+        if held and not resume and not config.overwrite:
+            raise PomilError(f"{self.dir} holds a run ({', '.join(held)}): --resume goes on with it, --overwrite "
+                             "replaces it, or choose another --out")
         self.ckpt_path = self.dir / "checkpoint.pt"
         self.device = resolve_device(config.device)
         self.lock = RunLock(self.dir)
@@ -595,6 +603,12 @@ class RunLoop:
         self.env, self.nets, self.optimizers, self.record = env, nets, optimizers, dict(record or {})
         self.carried = {k: v for k, v in (carried or {}).items() if v is not None}
         self.lock.acquire(self.resume)
+        if not self.resume and self.config.overwrite:
+            for path in (self.dir / name for name in RUN_FILES):
+                if path.is_dir():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink(missing_ok=True)
         config = to_dict(self.config)
         begun = (resume_run(self.ckpt_path, config, nets, optimizers=optimizers, generator=self.generator,
                             device=self.device, config_class=type(self.config),

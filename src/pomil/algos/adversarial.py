@@ -194,7 +194,6 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
     minibatches: int = option(4, "PPO minibatches per epoch", within="[1, inf)")
     learner: Literal["gail", "infogail", "infogail-pomdp"] = option("infogail-pomdp",
                                                                     "which learner (set by the subcommand)")
-    out: str = option("runs/adversarial", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     preset: Literal["auto", "default", "paper-text", "long-warm-start", "fast-warm-start", "deep-warm-start",
                     "terminating"] = option(
         "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
@@ -277,6 +276,9 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
     """Episode counts and the step caps they are cut to for long episodes (``sized_for_episodes``)."""
     FOLDED: ClassVar[dict[str, tuple[type, Any]]] = {"shared_value_encoder": (bool, _value_on_policy)}
     """Retired config keys, still read: ``shared_value_encoder`` true is ``belief`` value-on-policy."""
+
+    def default_out(self) -> str:
+        return f"runs/{self.learner}"
 
     def __post_init__(self) -> None:
         super().__post_init__()  # every field in its interval (see the option declarations)

@@ -29,7 +29,6 @@ from pomil.training import RunLoop, lr_hint
 
 @dataclass(frozen=True)
 class BCConfig(RunConfig):
-    out: str = option("runs/bc", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     preset: Literal["auto", "default", "terminating"] = option(
         "auto", "named settings under the config file and flags: auto (terminating for demonstrations whose "
                 "environment ends an episode when the agent fails, such as Hopper's own 1000-step setting; default "
@@ -61,6 +60,9 @@ class BCConfig(RunConfig):
     ``auto`` is replaced by one of them when training starts (``config.resolved``)."""
     EPISODE_CAPS: ClassVar[dict[str, str]] = {"batch_episodes": "max_batch_steps"}
     """Episode counts and the step caps they are cut to for long episodes (``sized_for_episodes``)."""
+
+    def default_out(self) -> str:
+        return f"runs/bc-{self.policy}"
 
 
 def train_bc(config: BCConfig, resume: bool = False) -> Path:

@@ -47,7 +47,6 @@ class ExpertConfig(PPOOptions, RunConfig):
     observation_mask: str = option("",
                                    "what the expert observes: '' (everything), positions-only, velocities, or "
                                    "comma-separated indices")
-    out: str = option("runs/expert", "run directory: checkpoint.pt, metrics.csv, tb/, config.json")
     iterations: int = option(200,
                              "iterations; each is one episode in every copy (paper setting: num_envs * 128 env steps)",
                              within="[1, inf)")
@@ -65,6 +64,9 @@ class ExpertConfig(PPOOptions, RunConfig):
 
     RENAMED: ClassVar[dict[str, str]] = {"epochs": "ppo_epochs"}
     """Old config keys, still read from config files and checkpoints (old -> new name)."""
+
+    def default_out(self) -> str:
+        return f"runs/expert-{self.env_id.split('-')[0].lower()}-{self.task}-{self.setting}"
 
     def env_settings(self) -> tuple[dict, list[int] | None]:
         """(constructor keywords, observation indices or None); ValueError when the env rejects them."""

@@ -28,8 +28,10 @@ only: recordings at several target speeds merge into one training set.
 
 from __future__ import annotations
 
+import importlib.resources
 import os
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -50,10 +52,15 @@ SETTINGS = {
     "paper": {"terminate_when_unhealthy": False, "max_episode_steps": 128},
     "standard": {"terminate_when_unhealthy": True, "max_episode_steps": 1000},
 }
-HOPPER_EXPERTS = {setting: {task: f"data/experts/hopper{'' if setting == 'paper' else '-' + setting}-{task}.pt"
-                            for task in ("forward", "backward")} for setting in ("paper", "standard")}
-"""Per setting, the shipped Hopper experts (relative to the repository root): the paper setting's never
-learned to stay healthy past 128 steps, so the standard setting has experts of its own."""
+SHIPPED_EXPERTS = Path(str(importlib.resources.files("pomil") / "experts"))
+"""The experts shipped inside the package (``pomil/experts/NAME.pt``, policy and observation normaliser, with their
+training metrics and evaluation), found wherever pomil is installed."""
+HOPPER_EXPERTS = {
+    setting: {task: str(SHIPPED_EXPERTS / f"hopper{'' if setting == 'paper' else '-' + setting}-{task}.pt")
+              for task in ("forward", "backward")}
+    for setting in ("paper", "standard")}
+"""Per setting, the shipped Hopper experts: the paper setting's never learned to stay healthy past 128 steps, so
+the standard setting has experts of its own."""
 DEMO_EPISODES = {"paper": 200, "standard": 100}
 """Per setting, the demonstration episodes per task recorded by default (``pomil demos hopper --episodes``,
 the hopper and hopper-standard specs' recipes): what the committed results were measured on (the standard
