@@ -1,0 +1,67 @@
+"""The package path, as a user who installs pomil's wheel meets it: the wheel built from this checkout, installed
+into a fresh virtual environment outside it, run from an empty folder (shipped experts, default run directories,
+the overwrite refusal, evaluation). The new environment takes its dependencies from this one's packages, after
+its own: pomil itself comes from the wheel, never from the checkout."""
+
+import json
+import math
+import subprocess
+import sys
+import sysconfig
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run(cmd, cwd, code=0):
+    r = subprocess.run([str(c) for c in cmd], cwd=cwd, capture_output=True, text=True, timeout=900,
+                       env={"PATH": "/usr/bin:/bin", "HOME": str(cwd), "OMP_NUM_THREADS": "1"})
+    assert r.returncode == code, r.stdout + r.stderr
+    return r
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    """(the fresh environment's ``pomil`` command, the wheel's file names)."""
+    tmp = tmp_path_factory.mktemp("package")
+    _run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", tmp / "dist", ROOT],
+         tmp)
+    (wheel,) = (tmp / "dist").glob("pomil-*.whl")
+    env = tmp / "venv"
+    _run([sys.executable, "-m", "venv", "--without-pip", env], tmp)
+    python = env / "bin" / "python"
+    purelib = _run([python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], tmp).stdout.strip()
+    purelib = Path(purelib)
+    (purelib / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    _run([sys.executable, "-m", "pip", "--python", python, "install", "-q", "--no-deps", "--no-index", wheel], tmp)
+    return env / "bin" / "pomil", zipfile.ZipFile(wheel).namelist()
+
+
+def test_the_wheel_holds_the_shipped_experts_and_experiment_specs(installed):
+    _, names = installed
+    assert {"pomil/py.typed", "pomil/experiments/circles.toml", "pomil/experts/hopper-forward.pt",
+            "pomil/experts/hopper-standard-backward.pt"} <= set(names)
+    assert not any(n.startswith(("tests/", "data/", "results/")) for n in names)
+
+
+def test_the_installed_package_runs_from_an_empty_folder(installed, tmp_path):
+    pomil, _ = installed
+    from pomil import __version__
+
+    assert _run([pomil, "--version"], tmp_path).stdout == f"pomil {__version__}\n"
+    where = _run([pomil.parent / "python", "-c", "import pomil; print(pomil.__file__)"], tmp_path).stdout
+    assert where.startswith(str(pomil.parents[1])), where  # the wheel's copy, not the checkout's
+    r = _run([pomil, "demos", "hopper", "--episodes", "1", "--out", "d.npz"], tmp_path)  # the shipped experts
+    assert r.stdout.startswith("wrote d.npz: 2 episodes (1 per task, paper setting)")
+    train = [pomil, "train", "bc", "--demos", "d.npz", "--iterations", "2", "--hidden-size", "8", "--no-progress"]
+    assert _run(train, tmp_path).stdout == "wrote runs/bc-gru/checkpoint.pt\n"
+    refused = _run(train, tmp_path, code=2)
+    assert refused.stderr.startswith("pomil: error: runs/bc-gru holds a run (") and refused.stderr.count("\n") == 1
+    _run([*train, "--overwrite"], tmp_path)
+    scores = json.loads(_run([pomil, "evaluate", "runs/bc-gru/checkpoint.pt", "--demos", "d.npz",
+                              "--episodes-per-code", "2", "--json"], tmp_path).stdout)
+    assert set(scores["tasks"]) == {"forward", "backward"} and scores["episodes_per_code"] == 2
+    assert all(math.isfinite(t["normalised_return"]) for t in scores["tasks"].values())
