@@ -12,7 +12,7 @@ from pomil.data import Demonstrations
 from pomil.demos import merge_demos, record_hopper_demos
 from pomil.envs import make_vec_env
 from pomil.envs.batch import GymSim
-from pomil.envs.locomotion import hopper_kwargs, locomotion_kwargs
+from pomil.envs.locomotion import HOPPER_EXPERTS, hopper_kwargs, locomotion_kwargs
 from pomil.envs.wrappers import parse_mask
 from pomil.errors import PomilError
 
@@ -140,8 +140,7 @@ def test_merge_refuses_incompatible_files(other, text):
 
 def test_hopper_demos_record_plus_merge_reproduce_the_shipped_file():
     shipped = Demonstrations.load(ROOT / "data" / "hopper-paper.npz")
-    demos = record_hopper_demos({t: str(ROOT / "data" / "experts" / f"hopper-{t}.pt") for t in ("forward", "backward")},
-                                200)
+    demos = record_hopper_demos(HOPPER_EXPERTS["paper"], 200)
     # the file was recorded on another CPU: MuJoCo's and torch's floats differ in the last bits between CPUs
     # (measured: up to 8e-7 in the observations), so floats are compared to a tolerance and the rest exactly
     for name in ("episode_bounds", "labels"):
@@ -311,7 +310,7 @@ def test_dart_recording_executes_noisy_actions_and_records_the_experts():
     from pomil.api import TrainedPolicy
     from pomil.demos import record_expert_demos
 
-    path = str(ROOT / "data" / "experts" / "hopper-forward.pt")
+    path = HOPPER_EXPERTS["paper"]["forward"]
     clean = record_expert_demos(path, 3, seed=0)
     noisy = record_expert_demos(path, 3, seed=0, action_noise=0.3)
     np.testing.assert_array_equal(clean.observations[0], noisy.observations[0])  # same reset, then apart
@@ -339,7 +338,7 @@ def test_the_velocities_view_is_qvel_alone_while_the_experts_see_everything():
     path = ROOT / "data" / "hopper-paper.npz"  # full states recorded: the paper's demonstrations re-masked
     velocities, _, _ = load_training_demos(str(path), {}, "velocities")
     np.testing.assert_array_equal(velocities.observations, Demonstrations.load(path).states[:, qvel])
-    expert = str(ROOT / "data" / "experts" / "hopper-forward.pt")
+    expert = HOPPER_EXPERTS["paper"]["forward"]
     demos = record_expert_demos(expert, 2, observation_mask="velocities", seed=0)
     assert demos.obs_dim == 6 and demos.metadata["observation_mask"] == qvel
     np.testing.assert_array_equal(demos.observations, demos.states[:, qvel])  # the file holds the learner's view
