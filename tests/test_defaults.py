@@ -216,6 +216,7 @@ def test_long_episodes_cut_the_episode_counts_to_the_step_caps(capsys):
     from pomil.algos.adversarial import sized_for_episodes
     from pomil.algos.bc import BCConfig
     from pomil.algos.bc import sized_for_episodes as bc_sized
+    from pomil.algos.warm_start import cloning_window
 
     cfg = AdversarialConfig()
     for short in (33, 128):  # circles and the paper's Hopper: the configured counts
@@ -231,3 +232,10 @@ def test_long_episodes_cut_the_episode_counts_to_the_step_caps(capsys):
     assert bc_sized(BCConfig(), 128) == BCConfig()
     assert bc_sized(BCConfig(), 1000).batch_episodes == 16
     assert bc_sized(BCConfig(batch_episodes=8), 1000).batch_episodes == 8  # under the cap: as configured
+    # a recurrent policy clones episodes longer than 128 steps in 128-step windows; shorter ones and a
+    # feed-forward policy's stay whole, as does everything without the dataset-wide mixture assignment
+    assert [cloning_window(cfg, n, True) for n in (33, 128, 1000)] == [0, 0, 128]
+    assert cloning_window(dataclasses.replace(cfg, learner="infogail"), 1000, True) == 0
+    assert cloning_window(cfg, 1000, False) == cloning_window(dataclasses.replace(cfg, mixture_balance="batch"),
+                                                              1000, True) == 0
+    assert sized_for_episodes(cfg, 1000, window=128).warm_start_batch == 64  # 64 windows: 8,192 steps

@@ -66,11 +66,11 @@ class WarmStartOptions:
                                                           "see MixtureAssignment)")
     warm_start_min_log_std: float = option(-20.0, "raise the warm-started policy's log std to at least this, the "
                                                   "adversarial phase's action noise (-20: fitted)", within="[-20, 2]")
-    warm_start_window: int = option(0, "with warm_start_codes mixture and mixture_balance dataset: episodes longer "
-                                         "than this are cloned (warm start and BC term) in windows of this many "
-                                         "steps, each from the policy's state at its start as the last whole-set "
-                                         "pass left it (truncated backpropagation, batches of warm_start_batch "
-                                         "windows; 0: whole episodes; not yet measured on a task)", within="[0, inf)")
+    warm_start_window: int = option(128, "with warm_start_codes mixture and mixture_balance dataset, for a recurrent "
+                                           "policy: episodes longer than this are cloned (warm start and BC term) in "
+                                           "windows of this many steps, each from the policy's state at its start as "
+                                           "the last whole-set pass left it (truncated backpropagation, batches of "
+                                           "warm_start_batch windows; 0: whole episodes)", within="[0, inf)")
     posterior_init_iterations: int = option(200, "with warm_start_codes mixture: posterior steps on the "
                                                  "demonstrations, each episode labelled with its most likely code",
                                             within="[0, inf)")
@@ -444,9 +444,11 @@ def sized_for_episodes(cfg: Any, episode_steps: int, *, window: int = 0) -> Any:
 
 def cloning_window(cfg: AdversarialConfig, episode_steps: int, mixture: bool) -> int:
     """The steps of the warm start's and BC term's cloning windows for episodes of ``episode_steps`` (0: whole
-    episodes): ``warm_start_window`` where the dataset-wide assignment keeps the windows' states and the
-    episodes are longer."""
-    window = cfg.warm_start_window
+    episodes): ``warm_start_window`` where the dataset-wide assignment keeps the windows' states, the episodes are
+    longer and the policy is recurrent (a feed-forward one has no backpropagation through time to cut)."""
+    from pomil.learners import LEARNERS  # the learners' table imports this module
+
+    window = cfg.warm_start_window if LEARNERS[cfg.learner].recurrent else 0
     return window if mixture and cfg.mixture_balance == "dataset" and 0 < window < episode_steps else 0
 
 
