@@ -1,5 +1,7 @@
 """The benchmark scripts' own input checks (their timings are measured, never asserted)."""
 
+import argparse
+import importlib
 import subprocess
 import sys
 from pathlib import Path
@@ -14,15 +16,24 @@ def hopper_speed(*args):
                           capture_output=True, text=True, timeout=120)
 
 
+def test_hopper_speed_rejects_bad_variants_before_timing_anything():
+    r = hopper_speed("--variants", "[1]")
+    assert r.returncode == 1
+    assert r.stdout == ""  # nothing timed: the simulator's row would be the first line
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("--variants: expected a JSON object") and "(got [1])" in lines[0]
+
+
 @pytest.mark.parametrize("variants, says", [
-    ("[1]", "(got [1])"),
     ("{not json", "Expecting property name"),
     ('{"x": {"gradient_penaltyy": 0}}', "unknown key(s) ['gradient_penaltyy']"),
     ('{"x": {"gradient_penalty": -1}}', "'gradient_penalty': expected a finite number in [0, inf), got -1.0"),
 ])
-def test_hopper_speed_rejects_bad_variants_before_timing_anything(variants, says):
-    r = hopper_speed("--variants", variants)
-    assert r.returncode == 1
-    assert r.stdout == ""  # nothing timed: the simulator's row would be the first line
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("--variants: expected a JSON object") and says in lines[0], r.stderr
+def test_hopper_speed_variants_errors_are_one_line(variants, says, monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    hs = importlib.import_module("hopper_speed")
+    args = argparse.Namespace(variants=variants, demos="data/hopper-paper.npz", iterations=1, device="cpu")
+    with pytest.raises(SystemExit) as err:
+        hs.training_configs(args, [8], [(1, "float32", "gru")])
+    lines = str(err.value).splitlines()
+    assert len(lines) == 1 and lines[0].startswith("--variants: expected a JSON object") and says in lines[0]

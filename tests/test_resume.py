@@ -97,7 +97,8 @@ def check_resume_is_exact(tmp_path: Path, args: list[str], kills: list[tuple[str
 ADVERSARIAL_KILLS = [("checkpoint", 1), ("log", 4)]  # inside the policy's 2 warm-up iterations, then after them
 
 
-@pytest.mark.parametrize("learner", ["infogail-pomdp", "infogail", "gail"])
+@pytest.mark.parametrize("learner", ["infogail-pomdp", pytest.param("infogail", marks=pytest.mark.slow),
+                                     pytest.param("gail", marks=pytest.mark.slow)])  # one loop: the default suite
 def test_adversarial_resume_on_circles_is_exact(learner, circles40, tmp_path):
     check_resume_is_exact(tmp_path, ["train", learner, "--demos", circles40, *SMALL], ADVERSARIAL_KILLS)
 

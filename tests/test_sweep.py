@@ -15,6 +15,7 @@ def pomil(*args, cwd=None):
                           timeout=600, cwd=cwd)
 
 
+@pytest.mark.slow  # Ray in the default suite: test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_...
 def test_sweep_on_local_ray_reports_failures_and_skips_finished_runs(tmp_path, demos_path):
     config = tmp_path / "sweep.json"
     config.write_text(json.dumps({"learner": "infogail-pomdp", "demos": str(demos_path), "iterations": 2, "num_envs": 8,
@@ -128,6 +129,7 @@ first run to write its checkpoint of iteration 100 is SIGKILLed right after it, 
 iteration it starts from.  The kill point is chosen, not raced for."""
 
 
+@pytest.mark.slow  # Ray in the default suite: test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_...
 def test_a_run_whose_worker_is_killed_resumes_from_its_checkpoint_on_retry(tmp_path, demos_path):
     """SIGKILL the Ray worker right after its checkpoint of iteration 100: Ray retries the task, and the retry
     continues from that checkpoint instead of starting over."""
