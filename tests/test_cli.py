@@ -79,6 +79,16 @@ def test_every_option_has_help_with_its_default():
     assert set(sub.choices) >= {"demos", "train", "evaluate", "plot", "reproduce"}
 
 
+def test_train_usage_lines_show_demos_as_required():
+    from pomil.learners import LEARNERS
+
+    train = {a.dest: a for a in build_parser()._actions if a.dest == "command"}["command"].choices["train"]
+    learners = {a.dest: a for a in train._actions if a.dest == "algo"}["algo"].choices
+    assert set(learners) == {name for name, learner in LEARNERS.items() if learner.command}
+    for name, p in learners.items():
+        assert p.format_usage() == f"usage: pomil train {name} --demos FILE.npz [--config FILE.json] [options]\n"
+
+
 def test_reproduce_tiny_writes_metrics_table_and_figure(tmp_path):
     out = tmp_path / "results"
     (tmp_path / "adv.json").write_text(json.dumps({"warm_start_iterations": 3, "num_envs": 8, "hidden_size": 16}))

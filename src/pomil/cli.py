@@ -529,7 +529,9 @@ def _add_training(sub: argparse._SubParsersAction) -> None:
     commands += [(train_sub, name, learner.help, learner.config, learner.fixed or None, cmd_train)
                  for name, learner in LEARNERS.items() if learner.command]
     for parent, name, text, cls, fixed, func in commands:
-        p = parent.add_parser(name, help=text)
+        # --demos is required, unless --config's file names it: the usage line says so (argparse's would not)
+        usage = f"pomil train {name} --demos FILE.npz [--config FILE.json] [options]" if parent is train_sub else None
+        p = parent.add_parser(name, help=text, usage=usage)
         add_config_flags(p, cls, fixed=fixed)
         p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
         p.set_defaults(func=func)
