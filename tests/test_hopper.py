@@ -150,6 +150,35 @@ def test_cli_demos_hopper_records_with_the_settings_action_noise_and_experts(tmp
     assert not (tmp_path / "bad.npz").exists()
 
 
+def test_demos_and_reproduce_take_experts_from_a_folder(tmp_path, capsys):
+    """--experts DIR: the package's file names or `pomil experts hopper`'s run directories; a folder without
+    them, or a spec that records no Hopper demonstrations, is one line and nothing written."""
+    import shutil
+
+    shipped, runs = tmp_path / "shipped", tmp_path / "runs"
+    shipped.mkdir()
+    for task, path in HOPPER_EXPERTS["paper"].items():
+        shutil.copy(path, shipped / Path(path).name)
+        (runs / f"expert-hopper-{task}-paper").mkdir(parents=True)
+        shutil.copy(path, runs / f"expert-hopper-{task}-paper" / "checkpoint.pt")
+    recorded = {}
+    for folder in (shipped, runs):
+        out = tmp_path / f"{folder.name}.npz"
+        assert main(["demos", "hopper", "--experts", str(folder), "--episodes", "1", "--out", str(out)]) == 0
+        recorded[folder.name] = Demonstrations.load(out)
+    assert np.array_equal(recorded["shipped"].observations, recorded["runs"].observations)
+    capsys.readouterr()
+    missing = tmp_path / "missing.npz"
+    assert main(["reproduce", "hopper", "--experts", str(tmp_path / "none"), "--demos", str(missing), "--rows",
+                 "bc-mlp", "--seeds", "1", "--out", str(tmp_path / "r"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"--experts {tmp_path / 'none'}: no forward expert of the paper setting there (expected " \
+           "hopper-forward.pt or expert-hopper-forward-paper/checkpoint.pt" in err, err
+    assert not missing.exists()
+    assert main(["reproduce", "circles", "--experts", str(shipped), "--out", str(tmp_path / "c")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1 and not (tmp_path / "c").exists()
+
+
 def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path, capsys):
     """`--first-seed` runs later seeds; `pomil reproduce merge` joins them with the earlier ones into one
     table of all seeds (runs in seed order, policies, summaries recomputed), and refuses other settings."""

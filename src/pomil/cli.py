@@ -146,6 +146,9 @@ class HopperDemosConfig:
     forward_expert: str = option("", "forward expert checkpoint (pomil experts hopper); default the setting's "
                                      "shipped one, pomil/experts/hopper[-standard]-forward.pt in the package")
     backward_expert: str = option("", "backward expert checkpoint; default the setting's shipped one")
+    experts: str = option("", "a folder of both experts instead of the shipped ones: the package's names "
+                              "(hopper[-standard]-TASK.pt) or what pomil experts hopper writes into runs/ "
+                              "(expert-hopper-TASK-SETTING/checkpoint.pt)")
     observation_mask: str = option("positions-only",
                                    "what the learner observes: positions-only, velocities, or comma-separated indices")
     seed: int = option(0, "random seed (reset noise, episode order)", within="[0, 4294967295]")
@@ -244,12 +247,27 @@ def cmd_demos_minari(args: argparse.Namespace) -> int:
     return 0
 
 
+def experts_in(folder: str, task: str, setting: str) -> str:
+    """The ``task`` expert of ``setting`` in ``folder``: named as the package names its own, or as ``pomil experts
+    hopper`` names its run directory; PomilError naming both when neither is there."""
+    from pomil.envs.locomotion import HOPPER_EXPERTS
+
+    names = (Path(HOPPER_EXPERTS[setting][task]).name, f"expert-hopper-{task}-{setting}/checkpoint.pt")
+    for name in names:
+        if (Path(folder) / name).is_file():
+            return str(Path(folder) / name)
+    raise PomilError(f"--experts {folder}: no {task} expert of the {setting} setting there (expected {names[0]} or "
+                     f"{names[1]}; train one: pomil experts hopper --task {task} --setting {setting})")
+
+
 def cmd_demos_hopper(args: argparse.Namespace) -> int:
     from pomil.demos import record_hopper_demos
     from pomil.envs.locomotion import HOPPER_EXPERTS, demo_recording
 
     cfg: HopperDemosConfig = config_from_args(HopperDemosConfig, args)
     shipped = HOPPER_EXPERTS[cfg.setting]
+    if cfg.experts:
+        shipped = {task: experts_in(cfg.experts, task, cfg.setting) for task in shipped}
     experts = {task: getattr(cfg, f"{task}_expert") or shipped[task] for task in ("forward", "backward")}
     out = cfg.out or f"data/hopper-{cfg.setting}.npz"
     with _reported("demos hopper"):

@@ -800,6 +800,8 @@ class ReproduceOptions:
     rows: tuple[str, ...] = option((), "comma-separated rows of the spec to run (default: every row); a row's name "
                                        "also selects the grid's rows made from it")
     demos: str = option("", "demonstrations for every row instead of the spec's (recorded the spec's way if missing)")
+    experts: str = option("", "a folder of Hopper experts for recording missing demonstrations instead of the "
+                              "shipped ones (pomil demos hopper --experts)")
     episodes_per_code: int = option(0, "evaluation episodes per code (and task); 0: the spec's", within="[0, inf)")
     adversarial_iterations: int = option(0, "iterations of the adversarial rows (0: the spec's)", within="[0, inf)")
     bc_iterations: int = option(0, "gradient steps of the BC rows (0: the spec's)", within="[0, inf)")
@@ -837,6 +839,12 @@ def reproduce(spec_name: str, opts: ReproduceOptions) -> dict[str, Any]:
     rows = select_rows(spec, opts.rows)
     if opts.demos:  # recorded the spec's way when missing
         rows = [dataclasses.replace(r, demos=DemosSource(opts.demos, r.demos.record)) for r in rows]
+    if opts.experts:
+        if not any(r.demos.record[:1] == ("hopper",) for r in rows):
+            raise PomilError(f"--experts: {spec.source} records no Hopper demonstrations (its rows' recipes: "
+                             f"{sorted({shlex.join(r.demos.record) or 'none' for r in rows})})")
+        rows = [dataclasses.replace(r, demos=DemosSource(r.demos.file, (*r.demos.record, "--experts", opts.experts)))
+                if r.demos.record[:1] == ("hopper",) else r for r in rows]
     overrides: dict[str, dict[str, Any]] = {"adversarial": {}, "bc": {}}
     for kind in overrides:
         path, iterations = getattr(opts, f"{kind}_config"), getattr(opts, f"{kind}_iterations")
