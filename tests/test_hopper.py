@@ -87,8 +87,13 @@ def test_cli_expert_and_infogail_pomdp_smoke(tmp_path, capsys):
     assert "eval/forward/normalised_return" in header and "eval/backward/progress" in header
     capsys.readouterr()
     assert main(["evaluate", str(run / "checkpoint.pt"), "--demos", str(DEMOS), "--episodes-per-code", "2"]) == 0
-    printed = capsys.readouterr().out
-    assert "forward" in printed and "displacement ratio" in printed
+    printed = capsys.readouterr()
+    assert "forward" in printed.out and "displacement ratio" in printed.out
+    assert "evaluate (episodes): 100%" in printed.err and "8/8" in printed.err  # 2 codes x 2 episodes x 2 tasks
+    assert "step 128" in printed.err  # the paper setting's episodes all end at its last step
+    assert main(["evaluate", str(run / "checkpoint.pt"), "--demos", str(DEMOS), "--episodes-per-code", "2",
+                 "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
     assert main(["evaluate", str(run / "checkpoint.pt")]) == 2  # a Hopper policy needs --demos
 
 
@@ -136,6 +141,7 @@ def test_cli_demos_hopper_records_with_the_settings_action_noise_and_experts(tmp
     for name, (extra, noise) in cases.items():
         out = tmp_path / f"{name}.npz"
         assert main(["demos", "hopper", "--setting", name.split("-")[0], "--out", str(out), *extra]) == 0
+        assert "record (episodes): 100%" in capsys.readouterr().err  # 2 of 2 recorded
         md = Demonstrations.load(out).metadata
         if name.startswith("standard"):  # the paper's experts fall soon after step 128
             assert md["expert_returns"]["forward"] > 1500 and md["expert_returns"]["backward"] > 1500

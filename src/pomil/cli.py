@@ -155,6 +155,7 @@ class HopperDemosConfig:
     action_noise: float = option(-1.0, "std of Gaussian noise added to the executed actions while the expert's own "
                                        "actions are recorded (DART: demonstrations with recoveries); 0: none; -1: the "
                                        "setting's, paper 0, standard 0.1", within="[-1, inf)")
+    progress: bool = option(True, "show a progress bar of the recorded episodes")
 
 
 def _mask_arg(text: str) -> str | list[int] | None:
@@ -179,6 +180,7 @@ class RecordDemosConfig:
     action_noise: float = option(0.0, "std of Gaussian noise added to the executed actions while the expert's own "
                                       "actions are recorded (DART: demonstrations with recoveries); 0: none",
                                  within="[0, inf)")
+    progress: bool = option(True, "show a progress bar of the recorded episodes")
 
 
 def cmd_demos_record(args: argparse.Namespace) -> int:
@@ -192,7 +194,7 @@ def cmd_demos_record(args: argparse.Namespace) -> int:
     with _reported("demos record"):
         demos = record_expert_demos(cfg.expert, cfg.episodes, cfg.task or None,
                                     observation_mask=_mask_arg(cfg.observation_mask), seed=cfg.seed,
-                                    action_noise=cfg.action_noise)
+                                    action_noise=cfg.action_noise, progress=cfg.progress)
     demos.save(cfg.out)
     md = demos.metadata
     task = md["label_names"][0]
@@ -278,7 +280,8 @@ def cmd_demos_hopper(args: argparse.Namespace) -> int:
                                  f"{task} --setting {cfg.setting}; then pass --{task}-expert "
                                  f"runs/expert-hopper-{task}-{cfg.setting}/checkpoint.pt)")
         demos = record_hopper_demos(experts, episodes, cfg.setting, seed=cfg.seed,
-                                    observation_mask=_mask_arg(cfg.observation_mask), action_noise=noise)
+                                    observation_mask=_mask_arg(cfg.observation_mask), action_noise=noise,
+                                    progress=cfg.progress)
     demos.save(out)
     md = demos.metadata
     print(f"wrote {out}: {demos.num_episodes} episodes ({episodes} per task, {cfg.setting} setting), "
@@ -401,7 +404,8 @@ def _evaluate_tasks(policy, args: argparse.Namespace, demos) -> int:
         raise PomilError(f"evaluate: a {policy.env.get('id')} policy needs --demos (the demonstrations whose "
                          "expert returns normalise the scores)")
     reference = reference_of(demos.metadata, args.demos)
-    m = evaluate_tasks(policy, reference, args.episodes_per_code, seed=args.seed, deterministic=not args.stochastic)
+    m = evaluate_tasks(policy, reference, args.episodes_per_code, seed=args.seed, deterministic=not args.stochastic,
+                       progress=args.progress)
     if args.json:
         print(json.dumps(m, indent=2))
         return 0
@@ -571,6 +575,8 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
                                     "expert and zero-action returns")
     ev.add_argument("--stochastic", action="store_true", help="tasks: sample actions (default there: the policy mean)")
     ev.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    ev.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
+                    help="tasks: show a progress bar of the episodes (default: True)")
     ev.set_defaults(func=cmd_evaluate)
 
 

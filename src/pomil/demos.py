@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -70,7 +71,7 @@ def record_circles_demos(spec: CirclesSpec, episodes: int, noise_std: float = DE
 def record_expert_demos(expert_path: str, episodes: int, task: str | None = None,
                         *, observation_mask: str | list[int] | None = "positions-only", seed: int = 0,
                         reset_seed: int | None = None, reference_episodes: int = 100,
-                        action_noise: float = 0.0) -> Demonstrations:
+                        action_noise: float = 0.0, progress: bool = False) -> Demonstrations:
     """``episodes`` deterministic episodes of one expert checkpoint on its own
     environment (id and keywords from the checkpoint), labelled ``task``.
 
@@ -86,23 +87,28 @@ def record_expert_demos(expert_path: str, episodes: int, task: str | None = None
     environment carries out the expert's action plus N(0, action_noise^2) noise per dimension,
     and the expert's own (noise-free) action is recorded, so the episodes visit states off the
     expert's path and show how the expert acts there.  The expert returns in the metadata are
-    those of the noisy episodes.
+    those of the noisy episodes.  ``progress``: a bar of the recorded episodes on stderr.
     """
     from pomil.api import TrainedPolicy
+    from pomil.training import progress_bar
 
     expert = TrainedPolicy.load(expert_path)
     if expert.env.get("id") == ENV_ID:
         raise PomilError(f"{expert_path}: circle policies are recorded with `pomil demos circles`")
-    return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes=episodes,
-                          task=task or task_name(expert.env.get("kwargs") or {}), observation_mask=observation_mask,
-                          seed=seed, reset_seed=seed if reset_seed is None else reset_seed,
-                          reference_episodes=reference_episodes, action_noise=action_noise)
+    with progress_bar(episodes, "record (episodes)", progress) as bar:
+        return _record_policy(expert, expert_path, dict(expert.env.get("kwargs") or {}), episodes=episodes,
+                              task=task or task_name(expert.env.get("kwargs") or {}),
+                              observation_mask=observation_mask, seed=seed,
+                              reset_seed=seed if reset_seed is None else reset_seed,
+                              reference_episodes=reference_episodes, action_noise=action_noise, bar=bar)
 
 
 def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, task: str, observation_mask,
-                   seed: int, reset_seed: int, reference_episodes: int, action_noise: float = 0.0) -> Demonstrations:
+                   seed: int, reset_seed: int, reference_episodes: int, action_noise: float = 0.0,
+                   bar: Any | None = None) -> Demonstrations:
     from pomil.envs import make_vec_env
     from pomil.envs.wrappers import resolve_observation_mask
+    from pomil.training import EpisodeProgress
 
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -117,6 +123,7 @@ def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, tas
     x0 = x_position(sim)
     expert.reset(episodes, seed=seed)
     rec_obs, rec_act, ret, length = [], [], np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
+    tick = EpisodeProgress(bar)
     while not sim.done.all():
         alive = ~sim.done
         seen = full if expert_mask is None else full[:, expert_mask]
@@ -129,6 +136,7 @@ def _record_policy(expert, expert_path: str, kwargs: dict, *, episodes: int, tas
         full, r, _, _ = sim.step(executed)
         ret += r
         length += alive
+        tick(sim.done)
     displacement = x_position(sim) - x0
     speed = displacement / (np.maximum(length, 1) * getattr(sim, "dt", np.nan))  # mean x speed per episode, m/s
     sim.close()
@@ -273,14 +281,18 @@ def merge_demos(sources: list[Demonstrations], proportions: list[float] | None =
 
 def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting: str = "paper", *, seed: int = 0,
                         observation_mask: str | list[int] = "positions-only",
-                        reference_episodes: int = 100, action_noise: float = 0.0) -> Demonstrations:
+                        reference_episodes: int = 100, action_noise: float = 0.0,
+                        progress: bool = False) -> Demonstrations:
     """Equal numbers of episodes from each Hopper task's expert (checkpoint paths
     by task name), shuffled: :func:`record_expert_demos` in the task's
-    ``setting`` for each (``action_noise``: its DART recording), then :func:`merge_demos`."""
+    ``setting`` for each (``action_noise``: its DART recording), then :func:`merge_demos`
+    (``progress``: a bar of the recorded episodes on stderr)."""
     from pomil.api import TrainedPolicy
     from pomil.envs.locomotion import hopper_kwargs
+    from pomil.training import progress_bar
 
     recordings = []
+    bar = progress_bar(episodes_per_task * len(experts), "record (episodes)", progress)
     for j, (task, path) in enumerate(experts.items()):
         expert = TrainedPolicy.load(path)
         if expert.obs_dim != 11 or expert.env.get("id") != HOPPER_ID:
@@ -289,7 +301,8 @@ def record_hopper_demos(experts: dict[str, str], episodes_per_task: int, setting
         recordings.append(_record_policy(expert, path, hopper_kwargs(task, setting), episodes=episodes_per_task,
                                          task=task, observation_mask=observation_mask, seed=seed,
                                          reset_seed=seed + 1000 * j, reference_episodes=reference_episodes,
-                                         action_noise=action_noise))
+                                         action_noise=action_noise, bar=bar))
+    bar.close()
     demos = merge_demos(recordings, seed=seed, names=list(experts.values()))
     return replace(demos, metadata={**demos.metadata, "setting": setting})
 

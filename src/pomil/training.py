@@ -529,6 +529,22 @@ def progress_bar(total: int, desc: str, enabled: bool, initial: int = 0) -> Any:
                 mininterval=0.5 if sys.stderr.isatty() else 5.0)
 
 
+class EpisodeProgress:
+    """Moves ``bar`` (a :func:`progress_bar`, or None for nothing) on by the episodes of a batched simulator that
+    have ended since the last call, and shows the step they are at: ``tick(sim.done)`` once a step."""
+
+    def __init__(self, bar: Any | None) -> None:
+        self.bar, self.ended, self.step = bar, 0, 0
+
+    def __call__(self, done: np.ndarray) -> None:
+        self.step += 1
+        if self.bar is not None:
+            ended = int(done.sum())
+            self.bar.set_postfix_str(f"step {self.step}", refresh=False)
+            self.bar.update(ended - self.ended)  # redraws at the bar's interval, even when no episode ended
+            self.ended = ended
+
+
 # -------------------------------------------------------------------- run loop
 class RunLoop:
     """One run of a learner in its run directory: everything BC, experts and adversarial

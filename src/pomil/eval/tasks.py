@@ -35,28 +35,32 @@ from pomil.api import TrainedPolicy
 from pomil.demos import x_position
 from pomil.envs import make_vec_env
 from pomil.errors import PomilError
+from pomil.training import EpisodeProgress, progress_bar
 
 
 @torch.no_grad()
 def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episodes: int, *, seed: int = 0,
                        deterministic: bool = True, codes: np.ndarray | None = None,
-                       observation_mask: list[int] | None = None, env_id: str | None = None) -> dict[str, np.ndarray]:
+                       observation_mask: list[int] | None = None, env_id: str | None = None,
+                       bar: Any | None = None) -> dict[str, np.ndarray]:
     """One episode in each of ``episodes`` copies of the policy's environment
     (or ``env_id``) built with ``env_kwargs``; per episode: ``returns``,
     ``displacement`` (final minus initial torso x; NaN off MuJoCo), ``length``
-    (steps) and ``speed`` (displacement / duration, m/s; NaN off MuJoCo)."""
+    (steps) and ``speed`` (displacement / duration, m/s; NaN off MuJoCo).  ``bar``
+    (a progress bar) counts the episodes as they end."""
     env = make_vec_env(env_id or policy.env["id"], env_kwargs, episodes, device="cpu",
                        observation_mask=observation_mask, seed=seed)
     try:
         obs = env.reset()
         x0 = x_position(env.sim)
         policy.reset(episodes, codes if policy.num_codes else None, seed=seed)
-        ret, length = np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
+        ret, length, tick = np.zeros(episodes), np.zeros(episodes, dtype=np.int64), EpisodeProgress(bar)
         while not env.sim.done.all():
             alive = ~env.sim.done
             obs, r, _, _ = env.step(torch.as_tensor(policy.act(obs, deterministic)))
             ret += r.numpy()
             length += alive
+            tick(env.sim.done)
         displacement = x_position(env.sim) - x0
         speed = displacement / (np.maximum(length, 1) * getattr(env.sim, "dt", np.nan))
         return {"returns": ret, "displacement": displacement, "length": length, "speed": speed}
@@ -113,10 +117,12 @@ def reference_of(metadata: dict[str, Any], source: str = "demonstrations") -> di
 
 
 def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_per_code: int = 20, *, seed: int = 0,
-                   deterministic: bool = True) -> dict[str, Any]:
-    """Roll every code out on every task; per-task figures of the matched code."""
+                   deterministic: bool = True, progress: bool = False) -> dict[str, Any]:
+    """Roll every code out on every task; per-task figures of the matched code (``progress``: a bar of the
+    episodes on stderr)."""
     tasks = list(reference["tasks"])
     k = max(policy.num_codes, 1)
+    bar = progress_bar(len(tasks) * k * episodes_per_code, "evaluate (episodes)", progress)
     codes = np.repeat(np.arange(k), episodes_per_code)
     mask = policy.env.get("observation_mask")
     per_pair: dict[str, dict[str, dict[str, float]]] = {}
@@ -124,7 +130,7 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
     speeds = []
     for j, task in enumerate(tasks):
         roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed=seed,
-                                  deterministic=deterministic, codes=codes, observation_mask=mask)
+                                  deterministic=deterministic, codes=codes, observation_mask=mask, bar=bar)
         speeds.append(roll["speed"])
         for c in range(k):
             sel = codes == c
@@ -132,6 +138,7 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
             s["return_std"] = float(roll["returns"][sel].std())
             per_pair.setdefault(f"code{c}", {})[task] = s
             progress[c, j] = s["progress"]
+    bar.close()
     assigned = match_codes(progress)
     per_task = {task: {"code": c, **per_pair[f"code{c}"][task]} for task, c in zip(tasks, assigned, strict=True)}
     summary = {f"min_{m}": min(per_task[t][m] for t in tasks) for m in ("normalised_return", "progress",
