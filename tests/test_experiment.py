@@ -9,6 +9,8 @@ from pomil.errors import PomilError
 from pomil.experiment import load_spec, results_table, select_rows, spec_from_dict, spec_names, summarise
 
 ROOT = Path(__file__).resolve().parents[1]
+COMMITTED = (ROOT / "results").is_dir()  # the repository's; an unpacked sdist has none
+NO_RESULTS = "the committed results/ are the repository's: the sdist does not carry them"
 
 
 @pytest.mark.parametrize("name", spec_names())
@@ -17,6 +19,8 @@ def test_every_shipped_spec_loads_and_its_committed_results_name_it(name):
     assert spec.rows and spec.description
     if not spec.results:
         return
+    if not COMMITTED:
+        pytest.skip(NO_RESULTS)
     metrics = json.loads((ROOT / spec.results / "metrics.json").read_text())
     assert metrics["spec"]["name"] == name and metrics["spec"]["source"] == f"src/pomil/experiments/{name}.toml"
     assert list(metrics["rows"]) == [r.name for r in spec.rows]
@@ -30,6 +34,7 @@ def test_every_shipped_spec_loads_and_its_committed_results_name_it(name):
     assert kept == expected
 
 
+@pytest.mark.skipif(not COMMITTED, reason=NO_RESULTS)
 def test_every_results_directory_is_made_by_a_spec_the_readme_lists():
     made = {load_spec(n).results for n in spec_names()}
     readme = (ROOT / "README.md").read_text()

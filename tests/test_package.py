@@ -65,3 +65,25 @@ def test_the_installed_package_runs_from_an_empty_folder(installed, tmp_path):
                               "--episodes-per-code", "2", "--json"], tmp_path).stdout)
     assert set(scores["tasks"]) == {"forward", "backward"} and scores["episodes_per_code"] == 2
     assert all(math.isfinite(t["normalised_return"]) for t in scores["tasks"].values())
+
+
+def test_the_sdist_carries_the_tests_and_what_they_read(tmp_path):
+    """An unpacked sdist runs the suite from its own src/ (``PYTHONPATH=src pytest``): it holds every file of tests/
+    (conftest, fixtures) and scripts/, the benchmark scripts and the demonstrations the tests read; the committed
+    results stay in the repository."""
+    import tarfile
+
+    build = f"from setuptools.build_meta import build_sdist; print(build_sdist({str(tmp_path)!r}))"
+    name = _run([sys.executable, "-c", build], ROOT).stdout.strip().splitlines()[-1]
+    with tarfile.open(tmp_path / name) as tar:
+        held = {m.split("/", 1)[1] for m in tar.getnames() if "/" in m}
+
+    def files(folder):
+        return {p.relative_to(ROOT).as_posix() for p in (ROOT / folder).rglob("*")
+                if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}
+
+    expected = files("tests") | files("scripts") | (files("benchmarks") - files("benchmarks/results"))
+    assert {"tests/conftest.py", "data/circles.npz", "data/hopper-paper.npz", "pyproject.toml", "LICENSE"} <= held
+    assert any(h.startswith("tests/fixtures/") for h in held)
+    assert expected <= held, sorted(expected - held)[:10]
+    assert not any(h.startswith(("results/", "benchmarks/results/", ".git")) for h in held)
