@@ -1,5 +1,6 @@
 """collect: the rollout's values against the value network run step by step."""
 
+import pytest
 import torch
 
 from pomil.envs import executed_actions_fn, make_vec_env
@@ -55,6 +56,7 @@ def test_values_from_one_unroll_match_stepping_through_episodes_of_different_len
         assert bool(ended[n - 1, i])
 
 
+@pytest.mark.usefixtures("torch_default_threads")
 def test_torch_threads_sets_and_restores():
     before = torch.get_num_threads()
     with torch_threads(1):
