@@ -118,14 +118,15 @@ def test_reproduce_hopper_smoke_with_override(tmp_path):
     assert sorted(p.name for p in (out / "policies").iterdir()) == ["bc-mlp-seed0.pt", "infogail-pomdp-seed0.pt"]
 
 
-def test_standard_setting_records_from_the_shipped_standard_experts(tmp_path):
+def test_standard_setting_records_from_the_shipped_standard_experts(tmp_path, capsys):
     """The paper-setting experts fall soon after step 128; the standard setting has experts of its own
     (the hopper-standard spec's recipe, with fewer episodes)."""
     from pomil.experiment import DemosSource, load_spec
 
     record = load_spec("hopper-standard").rows[0].demos.record
     assert record == ("hopper", "--setting", "standard")
-    path = DemosSource(str(tmp_path / "std.npz"), (*record, "--episodes", "2")).ensure()
+    path = DemosSource(str(tmp_path / "std.npz"), (*record, "--episodes", "2")).ensure(progress=False)
+    assert "record (episodes)" not in capsys.readouterr().err  # reproduce --no-progress: no recording bar either
     demos = Demonstrations.load(path)
     assert demos.metadata["setting"] == "standard" and demos.num_episodes == 4
     assert demos.metadata["expert_returns"]["forward"] > 1500 and demos.metadata["expert_returns"]["backward"] > 1500

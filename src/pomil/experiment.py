@@ -80,6 +80,10 @@ recorded again give slightly other demonstrations where floats differ (another C
 
 
 # ====================================================================== the spec
+RECORDERS_WITH_PROGRESS = frozenset({"hopper", "record"})
+"""The ``pomil demos`` commands that show a progress bar (``--no-progress`` hides it); the rest are quick."""
+
+
 @dataclass(frozen=True)
 class DemosSource:
     """A demonstrations file, and the ``pomil demos`` arguments that record it when it is missing."""
@@ -87,7 +91,8 @@ class DemosSource:
     file: str
     record: tuple[str, ...] = ()
 
-    def ensure(self) -> Path:
+    def ensure(self, progress: bool = True) -> Path:
+        """The file, recorded first when missing (``progress``: the recording's progress bar, where it has one)."""
         path = Path(self.file)
         if path.exists():
             return path
@@ -96,7 +101,8 @@ class DemosSource:
                              "record them (pomil demos) or give others with --demos")
         from pomil.cli import main
 
-        args = ["demos", *self.record, "--out", str(path)]
+        quiet = not progress and self.record[0] in RECORDERS_WITH_PROGRESS
+        args = ["demos", *self.record, "--out", str(path), *(["--no-progress"] if quiet else [])]
         print(f"recording {path}: pomil {shlex.join(args)}", flush=True)
         if main(args) != 0:
             raise PomilError(f"{path}: recording it (pomil {shlex.join(args)}) failed")
@@ -422,7 +428,7 @@ def run_experiment(spec: Spec, how: Execution) -> dict[str, Any]:
     policies/) in ``how.out``."""
     t_start = time.perf_counter()
     for demos in dict.fromkeys(r.demos for r in spec.rows):
-        demos.ensure()
+        demos.ensure(how.progress)
     keys = [(row, seed) for row in spec.rows for seed in spec.seed_list]
     workers = 1 if how.ray else max(1, min(how.jobs or int(usable_cpus() // how.cpus_per_run), len(keys)))
     progress = how.progress and workers == 1 and not how.ray  # bars side by side would overwrite each other
