@@ -106,16 +106,17 @@ def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(
     assert from_dict(AdversarialConfig, {"demos": str(standard_hopper_demos)}).preset == "auto"  # read at the start
     std = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos)})
     assert std.preset == "terminating"
-    assert (std.policy_obs_delta, std.policy_prev_action) == (True, False)
+    assert (std.policy_obs_delta, std.policy_prev_action, std.iterations) == (True, False, 15)
     assert (std.warm_start_iterations, std.warm_start_lr, std.warm_start_lr_decay, std.warm_start_log_std_lr_scale,
             std.warm_start_fit_log_std) == (600, 3e-3, True, 10.0, True)
-    assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True) == \
+    assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True,
+                               iterations=30) == \
         at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "fast-warm-start"})
     # the user's values win, also one equal to the field's default; a named preset is taken as named
     mine = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "policy_prev_action": True,
-                                         "warm_start_iterations": 100})
-    assert (mine.preset, mine.policy_obs_delta, mine.policy_prev_action, mine.warm_start_iterations) == (
-        "terminating", True, True, 100)
+                                         "warm_start_iterations": 100, "iterations": 30})
+    assert (mine.preset, mine.policy_obs_delta, mine.policy_prev_action, mine.warm_start_iterations,
+            mine.iterations) == ("terminating", True, True, 100, 30)
     default = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "default"})
     assert default.warm_start_lr == 1e-2
     # the run's env_kwargs decide, as they decide the environment: paper's demonstrations made to end on a fall
