@@ -377,3 +377,17 @@ def test_the_warm_start_shows_its_progress(demos_path, tmp_path, capsys):
     assert "posterior warm start: 100%" in err and "3/3" in err and "loss=" in err
     assert main([*args, "--out", str(tmp_path / "quiet")]) == 0  # --no-progress: no bars
     assert "warm start" not in capsys.readouterr().err
+
+
+def test_docs_lists_the_topics_and_prints_one(capsys):
+    root = Path(__file__).resolve().parents[1]
+    assert main(["docs"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in listed] == sorted(p.stem for p in (root / "docs").glob("*.md"))
+    assert "method     Method and training recipe" in listed
+    assert main(["docs", "method"]) == 0
+    assert capsys.readouterr().out == (root / "docs" / "method.md").read_text()
+    assert main(["docs", "nope"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pomil: error: no documentation topic 'nope': choose from gpu, hopper,")
+    assert err.count("\n") == 1

@@ -44,6 +44,8 @@ def test_the_wheel_holds_the_shipped_experts_and_experiment_specs(installed):
     _, names = installed
     assert {"pomil/py.typed", "pomil/experiments/circles.toml", "pomil/experts/hopper-forward.pt",
             "pomil/experts/hopper-standard-backward.pt"} <= set(names)
+    docs = {f"pomil/docs/{p.name}" for p in (ROOT / "docs").glob("*.md")}
+    assert "pomil/docs/hopper.md" in docs and docs <= set(names)  # every page of docs/
     assert not any(n.startswith(("tests/", "data/", "results/")) for n in names)
 
 
@@ -61,6 +63,9 @@ def test_the_installed_package_runs_from_an_empty_folder(installed, tmp_path):
     refused = _run(train, tmp_path, code=2)
     assert refused.stderr.startswith("pomil: error: runs/bc-gru holds a run (") and refused.stderr.count("\n") == 1
     _run([*train, "--overwrite"], tmp_path)
+    topics = _run([pomil, "docs"], tmp_path).stdout.splitlines()
+    assert len(topics) == len(list((ROOT / "docs").glob("*.md"))) and topics[1].startswith("hopper     Hopper")
+    assert _run([pomil, "docs", "hopper"], tmp_path).stdout == (ROOT / "docs" / "hopper.md").read_text()
     scores = json.loads(_run([pomil, "evaluate", "runs/bc-gru/checkpoint.pt", "--demos", "d.npz",
                               "--episodes-per-code", "2", "--json"], tmp_path).stdout)
     assert set(scores["tasks"]) == {"forward", "backward"} and scores["episodes_per_code"] == 2
@@ -83,7 +88,8 @@ def test_the_sdist_carries_the_tests_and_what_they_read(tmp_path):
                 if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}
 
     expected = files("tests") | files("scripts") | (files("benchmarks") - files("benchmarks/results"))
-    assert {"tests/conftest.py", "data/circles.npz", "data/hopper-paper.npz", "pyproject.toml", "LICENSE"} <= held
+    assert {"tests/conftest.py", "data/circles.npz", "data/hopper-paper.npz", "pyproject.toml", "LICENSE", "setup.py",
+            "docs/hopper.md"} <= held
     assert any(h.startswith("tests/fixtures/") for h in held)
     assert expected <= held, sorted(expected - held)[:10]
     replayed = {"benchmarks/results/num_codes_seeds.json", "benchmarks/results/num_codes_heldout.json"}

@@ -1,4 +1,4 @@
-"""The ``pomil`` command line: demos, train, evaluate, plot, reproduce.
+"""The ``pomil`` command line: demos, train, evaluate, plot, reproduce, docs.
 
 Every option of ``train`` (and of ``demos`` and ``reproduce``) is a field of a
 typed config dataclass; ``--config FILE.json`` sets any of them and flags
@@ -621,6 +621,39 @@ def _add_reproduce(sub: argparse._SubParsersAction) -> None:
     rp.set_defaults(func=cmd_reproduce)
 
 
+def docs_dir() -> Any:
+    """The documentation's folder: the one the package ships (``pomil/docs``, put there by the build), else the
+    source checkout's ``docs/`` (an editable install)."""
+    from importlib.resources import files
+
+    shipped = files("pomil") / "docs"
+    return shipped if shipped.is_dir() else Path(__file__).resolve().parents[2] / "docs"
+
+
+def cmd_docs(args: argparse.Namespace) -> int:
+    """``pomil docs``: the topics and their titles; ``pomil docs TOPIC``: that document's text."""
+    folder = docs_dir()
+    topics = {p.name.removesuffix(".md"): p for p in folder.iterdir() if p.name.endswith(".md")}
+    if not topics:
+        raise PomilError(f"{folder}: no documentation there (a pomil installed without its docs)")
+    if args.topic is None:
+        for name, path in sorted(topics.items()):
+            title = path.read_text(encoding="utf-8").splitlines()[0].lstrip("# ")
+            print(f"{name:<10} {title}")
+        return 0
+    if args.topic not in topics:
+        raise PomilError(f"no documentation topic '{args.topic}': choose from {', '.join(sorted(topics))}")
+    sys.stdout.write(topics[args.topic].read_text(encoding="utf-8"))
+    return 0
+
+
+def _add_docs(sub: argparse._SubParsersAction) -> None:
+    """``pomil docs [TOPIC]``."""
+    dc = sub.add_parser("docs", help="the documentation shipped with the package: the topics, or one topic's text")
+    dc.add_argument("topic", nargs="?", metavar="TOPIC", help="a topic's name (pomil docs lists them)")
+    dc.set_defaults(func=cmd_docs)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pomil",
                                 description="Multi-modal imitation learning in partially observable environments.")
@@ -628,7 +661,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p.add_argument("--version", action="version", version=f"pomil {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_demos, _add_training, _add_evaluate, _add_plot, _add_sweep, _add_reproduce):
+    for add in (_add_demos, _add_training, _add_evaluate, _add_plot, _add_sweep, _add_reproduce, _add_docs):
         add(sub)
     return p
 

@@ -212,7 +212,7 @@ class AttentionEncoder(nn.Module):
 OBS_DELTA_HELP = ("also see each observation's change since the previous step, scaled by the demonstrations' std "
                   "of it (a finite-difference velocity for positions-only observations)")
 PREV_ACTION_HELP = ("see the previous action a_{t-1} (the paper's belief); false: zeros in its place, against the "
-                    "copycat problem of cloning deterministic demonstrations (docs/hopper.md)")
+                    "copycat problem of cloning deterministic demonstrations (pomil docs hopper)")
 """The policy input options' help (:class:`InputView`), shared by every config that builds a policy."""
 
 
