@@ -392,3 +392,70 @@ def test_the_warm_start_can_hand_over_a_floor_on_the_policys_action_noise(demos_
     fitted = log_std("fitted")
     assert bool((fitted < 0.5).all())  # the circles experts' noise: a fitted std well below e^0.5
     assert torch.equal(log_std("floor", warm_start_min_log_std=0.5), torch.full_like(fitted, 0.5))
+
+
+def _separable_demos(episodes: int = 16, steps: int = 12):
+    """Demonstrations whose first half shows observations +1, the second half -1: codes 0 and 1."""
+    from pomil.data import PaddedEpisodes
+
+    sign = torch.cat([torch.ones(episodes // 2), -torch.ones(episodes // 2)])
+    obs = sign.view(1, -1, 1).expand(steps, episodes, 2).clone()
+    acts = torch.zeros(steps, episodes, 2)
+    codes = (sign < 0).long()
+    return PaddedEpisodes(obs, acts, torch.ones(steps, episodes, dtype=torch.bool)), codes
+
+
+@pytest.mark.parametrize("tolerance", [0.01, 0.0])
+def test_posterior_warm_start_stops_once_it_tells_the_codes_apart(tolerance):
+    from pomil.algos.adversarial import POSTERIOR_INIT_PATIENCE, warm_start_posterior
+
+    demos, codes = _separable_demos()
+    cfg = AdversarialConfig(demos="x.npz", hidden_size=16, posterior_init_iterations=300, warm_start_batch=8,
+                            posterior_init_tolerance=tolerance, progress=False)
+    post = build_modules(cfg, 2, 2, num_codes=2, device="cpu")[0].posterior
+    stats = warm_start_posterior(post, demos, torch.zeros_like(demos.actions), codes=codes, cfg=cfg,
+                                 gen=torch.Generator().manual_seed(0))
+    if tolerance:
+        steps = stats["posterior/stopped_after"]
+        assert POSTERIOR_INIT_PATIENCE <= steps < 300 and stats["posterior/loss"] < tolerance
+        assert stats["posterior/accuracy"] == 1.0
+    else:  # all the steps
+        assert "posterior/stopped_after" not in stats and stats["posterior/loss"] < 0.01
+
+
+def test_continuous_codes_posterior_warm_start_takes_all_its_steps():
+    from pomil.algos.adversarial import warm_start_posterior
+
+    demos, codes = _separable_demos()
+    cfg = AdversarialConfig(demos="x.npz", hidden_size=16, posterior_init_iterations=40, warm_start_batch=8,
+                            code_kind="continuous", progress=False)
+    post = build_modules(cfg, 2, 2, num_codes=2, device="cpu")[0].posterior
+    stats = warm_start_posterior(post, demos, torch.zeros_like(demos.actions), codes=codes.float().unsqueeze(1) * 2 - 1,
+                                 cfg=cfg, gen=torch.Generator().manual_seed(0))
+    assert "posterior/stopped_after" not in stats
+
+
+def test_an_evaluation_of_a_policy_that_has_not_moved_is_not_rolled_out_again(demos_path, monkeypatch):
+    import pomil.eval.circles as circles
+    from pomil.algos.adversarial import make_evaluator
+    from pomil.data import load_training_demos
+
+    calls = []
+    real = circles.evaluate_circles
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(circles, "evaluate_circles", counted)
+    demos, env_id, env_kwargs = load_training_demos(str(demos_path))
+    cfg = AdversarialConfig(demos=str(demos_path), hidden_size=16, eval_episodes=2, progress=False)
+    env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": None}
+    evaluate = make_evaluator(cfg, env_info, demos)
+    policy = build_modules(cfg, demos.obs_dim, demos.act_dim, num_codes=2, device="cpu")[0].policy
+    first = evaluate(policy)
+    assert evaluate(policy) == first and len(calls) == 1  # the same weights: the same figures, no rollouts
+    with torch.no_grad():
+        next(policy.parameters()).add_(0.5)
+    evaluate(policy)
+    assert len(calls) == 2

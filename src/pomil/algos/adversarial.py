@@ -111,7 +111,7 @@ class CodeOptions:
     num_codes: int = option(-1,
                             "latent codes K >= 2; -1 = number of modes the demonstrations' metadata or labels name, "
                             "at least 2; auto = chosen by the mixture warm start's held-out classification likelihood "
-                            "for K = 1..num_codes_max (docs/method.md; 0 in Python) (ignored by gail)",
+                            "for K = 1..num_codes_max (pomil docs method; 0 in Python) (ignored by gail)",
                             within="[-1, inf)", named={"auto": 0})
     num_codes_max: int = option(6, "with num_codes auto: the largest K tried (one warm start each)", within="[2, inf)")
     num_codes_search_iterations: int = option(500, "with num_codes auto: mixture warm-start steps of each K's fit "
@@ -128,7 +128,7 @@ class CodeOptions:
                                        within="[0, inf)")
     code_kind: Literal["discrete", "continuous"] = option(
         "discrete", "latent codes: discrete (one of num_codes, one-hot) or continuous (c in R^code_dim from "
-                    "code_prior, a Gaussian posterior: InfoGAIL's continuous c; docs/method.md); ignored by gail")
+                    "code_prior, a Gaussian posterior: InfoGAIL's continuous c; pomil docs method); ignored by gail")
     code_dim: int = option(1, "with code_kind continuous: the code's dimension d", within="[1, inf)")
     code_prior: Literal["uniform", "gaussian"] = option(
         "uniform", "with code_kind continuous: the prior codes are drawn from, uniform on [-1, 1]^d or a standard "
@@ -149,7 +149,7 @@ class NetworkOptions:
     belief: Literal["separate", "value-on-policy", "shared", "policy"] = option(
         "separate", "belief encoders: separate = policy, value, critic and posterior each have their own (the paper); "
                     "value-on-policy = the value head on the policy's encoder, critic and posterior their own "
-                    "(measured: docs/method.md); shared = one encoder for all four, trained by every loss; policy = "
+                    "(measured: pomil docs method); shared = one encoder for all four, trained by every loss; policy = "
                     "the policy's only, value, critic and posterior feed-forward (the last two are ablations)")
     policy_obs_delta: bool = option(False, "the policy (not critic, value or posterior): " + OBS_DELTA_HELP)
     policy_prev_action: bool = option(True, "the policy's encoder: " + PREV_ACTION_HELP)
@@ -218,7 +218,7 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
         "float32", "the updates' and the warm start's network passes (critic, posterior, policy and value; not the "
                    "rollout's): float32, or bfloat16 through torch.autocast, with outputs, losses and weights in "
                    "float32; faster on a CPU with bfloat16 instructions (AVX512-BF16), slower without; other numerics "
-                   "(docs/speed.md)")
+                   "(pomil docs speed)")
     rollout_threads: int = option(1, "torch threads while collecting rollouts (0: torch's own setting); one keeps "
                                      "torch's idle OpenMP workers off the cores that a batched simulator steps on",
                                      within="[0, inf)")
@@ -227,7 +227,7 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
     termination: Literal["end", "absorbing"] = option(
         "end", "a policy episode that terminates (e.g. Hopper falls): end = its return ends there; absorbing = it "
                "goes on in an absorbing state paid the batch's lowest step reward, so ending early never pays (DAC; "
-               "measured on standard Hopper: no better, see docs/hopper.md)")
+               "measured on standard Hopper: no better, see pomil docs hopper)")
     value_clip: float = option(0.0, "PPO value clip (0: off)", within="[0, inf)")
     update_mode: Literal["sequence", "window"] = option("sequence",
                                                         "recurrent updates: whole sequences or random windows from a "
@@ -674,19 +674,25 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
+POSTERIOR_INIT_PATIENCE = 10
+"""Steps in a row under ``posterior_init_tolerance`` that end the posterior's warm start early."""
+
+
 def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, codes: torch.Tensor,
                          cfg: AdversarialConfig, gen: torch.Generator,
                          guard: DivergenceGuard | None = None) -> dict[str, float]:
     """``posterior_init_iterations`` steps of the posterior on the demonstrations, each episode
     under its code in ``codes``: indices (E,) (cross-entropy) or continuous codes (E, d)
-    (:func:`_code_gaussian_nll`).  Returns the last step's stats."""
+    (:func:`_code_gaussian_nll`).  With discrete codes it stops early once it tells the codes apart
+    (``posterior_init_tolerance``).  Returns the last step's stats."""
     code_nll = _code_cross_entropy if codes.ndim == 1 else _code_gaussian_nll
     post_opt = torch.optim.Adam(post.parameters(), lr=cfg.warm_start_lr)
     starts = first_step_starts(expert.mask)
     batch = min(cfg.warm_start_batch, episodes_within(cfg.max_batch_steps, expert.mask.shape[0]), len(codes))
     s: dict[str, float] = {}
+    below = 0  # steps in a row under posterior_init_tolerance (discrete codes)
     with progress_bar(cfg.posterior_init_iterations, "posterior warm start", cfg.progress) as bar:
-        for _ in range(cfg.posterior_init_iterations):
+        for step in range(cfg.posterior_init_iterations):
             idx = torch.randint(len(codes), (batch,), generator=gen).to(codes.device)  # whole episodes
             targets = codes[idx].expand(expert.mask.shape[0], *codes[idx].shape)  # every step of each episode
             with precision_context(cfg.precision, starts.device):
@@ -698,8 +704,12 @@ def warm_start_posterior(post: BeliefHead, expert: PaddedEpisodes, expert_prev: 
             post_opt.zero_grad(set_to_none=True)
             loss.backward()
             post_opt.step()
+            below = below + 1 if codes.ndim == 1 and s["posterior/loss"] < cfg.posterior_init_tolerance else 0
             bar.set_postfix(loss=f"{s['posterior/loss']:.4g}", refresh=False)
             bar.update()
+            if below == POSTERIOR_INIT_PATIENCE and step + 1 < cfg.posterior_init_iterations:
+                s["posterior/stopped_after"] = float(step + 1)  # row 0's init/posterior_stopped_after
+                break
     return s
 
 
@@ -918,9 +928,17 @@ def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
             res = evaluate_tasks(tp, reference, cfg.eval_episodes, seed=12345)
             return {f"eval/{task}/{k}": float(v) for task, r in res["tasks"].items() for k, v in r.items()}
 
+    last: dict[str, Any] = {}
+
     def evaluate(policy: GaussianPolicy) -> dict[str, float]:
+        # The evaluation is deterministic in the policy's weights: a policy that has not moved since the last one
+        # (the policy warm-up's iterations) gets its figures again without the rollouts.
+        weights = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+        if last and all(torch.equal(v, last["weights"][k]) for k, v in weights.items()):
+            return dict(last["stats"])
         stats = measure(TrainedPolicy(policy, cfg.learner, env_info, policy.log_std.device))
         policy.train()
+        last.update(weights=weights, stats=stats)
         return stats
 
     return evaluate

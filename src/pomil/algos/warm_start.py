@@ -74,6 +74,10 @@ class WarmStartOptions:
     posterior_init_iterations: int = option(200, "with warm_start_codes mixture: posterior steps on the "
                                                  "demonstrations, each episode labelled with its most likely code",
                                             within="[0, inf)")
+    posterior_init_tolerance: float = option(
+        0.01, "with discrete codes: the posterior's warm start stops before posterior_init_iterations once its "
+              "cross-entropy (nats per step) has stayed below this for 10 steps in a row: it tells the episodes' "
+              "codes apart (0: all the steps)", within="[0, inf)")
 
 
 FAST_WARM_START: dict[str, Any] = {
