@@ -1,5 +1,6 @@
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -391,3 +392,17 @@ def test_docs_lists_the_topics_and_prints_one(capsys):
     err = capsys.readouterr().err
     assert err.startswith("pomil: error: no documentation topic 'nope': choose from gpu, hopper,")
     assert err.count("\n") == 1
+
+
+@pytest.mark.parametrize("args", [["docs"], ["docs", "method"]])  # a short page (flushed at the end), a long one
+def test_a_reader_that_leaves_ends_the_command_quietly(args):
+    """``pomil docs method | head``: stdout whose reader has gone is exit status 141 (as SIGPIPE in a shell) with
+    nothing on stderr, not a traceback. The pipe's read end is closed before pomil starts, so every write fails."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        done = subprocess.run([sys.executable, "-m", "pomil", *args], stdout=write_end, stderr=subprocess.PIPE,
+                              text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr) == (141, "")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import typing
 from collections.abc import Iterator
@@ -673,13 +674,18 @@ def main(argv: list[str] | None = None) -> int:
         from pomil.envs.batch import mujoco_warnings_once
 
         mujoco_warnings_once()  # gymnasium's HalfCheetah model warns at each load: once is enough
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # here, where a reader that left is caught below, not at the interpreter's exit
+        return status
     except PomilError as err:
         print(f"pomil: error: {err}", file=sys.stderr)
         return err.exit_status
     except KeyboardInterrupt:
         print("pomil: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of stdout left (`pomil docs method | head`): stop quietly, as a shell tool
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error as Python flushes at exit
+        return 141
 
 
 if __name__ == "__main__":
