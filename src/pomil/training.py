@@ -269,6 +269,9 @@ def restore_carried(ckpt_path: Path, saved: Any, carried: dict[str, Any]) -> Non
     if not isinstance(saved, dict):
         raise TypeError("'carried' is not a dict")
     for name, obj in carried.items():
+        if name not in saved:  # kept by a later version than the one that wrote the checkpoint
+            print(f"pomil: note: {ckpt_path} keeps no {name} state: resuming with it fresh", file=sys.stderr)
+            continue
         obj.load_state_dict(saved[name])
 
 
@@ -586,6 +589,7 @@ class RunLoop:
         self.nets: dict[str, Any] = {}
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.carried: dict[str, Any] = {}
+        self.hand_over: Callable[[], dict[str, Any] | None] | None = None
 
     def __enter__(self) -> RunLoop:
         return self
@@ -600,7 +604,8 @@ class RunLoop:
 
     def start(self, *, env: dict[str, Any], nets: dict[str, Any], optimizers: dict[str, torch.optim.Optimizer],
               env_steps: bool = True, record: dict[str, Any] | None = None,
-              carried: dict[str, Any] | None = None) -> bool:
+              carried: dict[str, Any] | None = None,
+              hand_over: Callable[[], dict[str, Any] | None] | None = None) -> bool:
         """Take the lock, resume (under ``--resume``) and write ``config.json``; False when the checkpoint
         is at the last iteration already (nothing to do: a note says so).
 
@@ -615,8 +620,13 @@ class RunLoop:
 
         ``penalty_generator`` starts from torch's global RNG as it is here, after the networks are built
         (or restored): the gradient penalty's interpolation weights draw from it, the numbers they drew from
-        the global RNG before the penalty had a generator of its own; checkpoints keep it as ``rng.torch``."""
+        the global RNG before the penalty had a generator of its own; checkpoints keep it as ``rng.torch``.
+
+        ``hand_over() -> weights or None``: the policy the checkpoint hands over as ``policy`` (what
+        :class:`pomil.TrainedPolicy` loads) in place of the running one (None: the running one), which stays
+        in ``nets.policy`` for ``--resume`` (``pomil.algos.selection``)."""
         self.env, self.nets, self.optimizers, self.record = env, nets, optimizers, dict(record or {})
+        self.hand_over = hand_over
         self.carried = {k: v for k, v in (carried or {}).items() if v is not None}
         self.lock.acquire(self.resume)
         if not self.resume and self.config.overwrite:
@@ -697,6 +707,9 @@ class RunLoop:
         policy = self.nets["policy"]
         payload = {"algo": self.algo, "config": to_dict(self.config), "env": self.env,
                    "policy_arch": policy.arch.to_dict(), "policy": policy.state_dict()}
+        handed = self.hand_over() if self.hand_over is not None else None
+        if handed is not None:
+            payload["policy"] = handed
         if set(self.nets) != {"policy"}:
             payload["nets"] = {k: net.state_dict() for k, net in self.nets.items() if net is not None}
         if self.nets.get("obs_norm") is not None:

@@ -44,6 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from pomil.algos.num_codes import NumCodesChoice, search_num_codes
+from pomil.algos.selection import PolicySelection
 from pomil.algos.warm_start import (
     DEEP_WARM_START,
     FAST_WARM_START,
@@ -240,10 +241,17 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
     policy_warmup_iterations: int = option(5, "first iterations in which only the critic, posterior and value learn "
                                               "(the warm-started policy waits for a trained value and critic)",
                                               within="[0, inf)")
-    eval_every: int = option(5,
-                             "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos "
-                             "(0: off)", within="[0, inf)")
+    eval_every: int = option(
+        5, "iterations between evaluations: mode metrics on circles, per-task scores on Hopper demos, the distance to "
+           "the demonstrations that hand_over nearest compares (0: off, and the last policy handed over)",
+        within="[0, inf)")
     eval_episodes: int = option(10, "evaluation rollouts per code", within="[1, inf)")
+    hand_over: Literal["nearest", "last"] = option(
+        "nearest", "the policy the run hands over (the checkpoint's policy, what pomil evaluate loads): nearest = of "
+                   "the policies at the warm start and every eval_every iterations, the one whose deterministic "
+                   "rollouts lie nearest the demonstrations on what the learner observes (no environment reward; the "
+                   "run trains on unchanged, --resume goes on from its last policy); last = the last iteration's "
+                   "(pomil docs method)")
     log_every: int = option(5, "iterations between log rows", within="[1, inf)")
     checkpoint_every: int = option(100, "iterations between checkpoints (one is always written at the end)",
                                    within="[1, inf)")
@@ -255,7 +263,7 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
             "critic_optimizer": "rmsprop", "weight_clip": 0.01, "gradient_penalty": 0.0, "lr": 2e-4, "lr_critic": 2e-4,
             "lr_posterior": 2e-4, "update_mode": "window", "warm_start_codes": "random", "warm_start_iterations": 300,
             "warm_start_lr": 1e-3, "warm_start_lr_decay": False, "warm_start_lr_warmup": 0.0, "bc_weight": 0.0,
-            "policy_warmup_iterations": 0,
+            "policy_warmup_iterations": 0, "hand_over": "last",
         },
         # The warm starts compared in docs/method.md, "The warm start's schedule".
         "long-warm-start": LONG_WARM_START,
@@ -944,6 +952,15 @@ def make_evaluator(cfg: AdversarialConfig, env_info: dict[str, Any],
     return evaluate
 
 
+def with_selection(evaluate: Callable[[GaussianPolicy], dict[str, float]] | None, selection: PolicySelection,
+                   loop: RunLoop) -> Callable[[GaussianPolicy], dict[str, float]]:
+    """The run's evaluation (if any) followed by the selection's measure of the same policy."""
+    def evaluate_and_select(policy: GaussianPolicy) -> dict[str, float]:
+        return {**(evaluate(policy) if evaluate is not None else {}), **selection(policy, loop.iteration)}
+
+    return evaluate_and_select
+
+
 # ------------------------------------------------------------------------- train
 def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
     """The option to lower when a quantity (named by its first word) turns NaN or inf."""
@@ -1004,14 +1021,19 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         run = AdversarialRun(cfg, m, opt, gen, loop.penalty_generator, BatchSampler(cfg.update_mode, cfg.window_length),
                              expert, expert_prev, execute, num_codes, loop.guard, episode_codes=episode_codes,
                              assignment=mixture_assignment(cfg, expert, expert_prev, uses_mixture(cfg, num_codes)))
+        selection = (PolicySelection(expert, expert_prev, env_info=env_info, learner=cfg.learner)
+                     if cfg.hand_over == "nearest" and cfg.eval_every > 0 else None)
         if not loop.start(env=env_info, nets=nets, optimizers=opt, record=choice.record() if choice else None,
-                          carried={"env": env, "assignment": run.assignment}):
+                          carried={"env": env, "assignment": run.assignment, "selection": selection},
+                          hand_over=selection.policy_state if selection is not None else None):
             return loop.ckpt_path
         # A checkpoint at iteration 0 is that of a warm start alone (--iterations 0): resuming it goes on from there.
         init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes=num_codes, mixture=run.mixture, cfg=cfg,
                                     gen=gen, guard=run.guard, episode_codes=episode_codes)
                       if loop.iteration == 0 and not resume and cfg.warm_start_iterations > 0 else {})
         clock = PhaseClock("rollout", "critic", "posterior", "ppo", device=loop.device)
+        if selection is not None:
+            evaluate = with_selection(evaluate, selection, loop)
         return loop.run(lambda it: iteration(run, loop, env, clock=clock, it=it), desc=cfg.learner, key_stats=KEY_STATS,
                         first_row={**(choice.stats() if choice else {}), **init_stats}, evaluate=evaluate,
                         eval_every=cfg.eval_every,
