@@ -36,10 +36,11 @@ class PolicySelection:
 
     @torch.no_grad()
     def assignment(self, policy: GaussianPolicy) -> torch.Tensor:
-        """Each demonstration episode's code under the policy (balanced over codes), (E,); zeros without codes."""
+        """Each demonstration episode's code under the policy (balanced over codes), (E,); zeros without discrete
+        codes (continuous codes: every code value's rollouts against all the demonstrations)."""
         from pomil.algos.warm_start import balanced_responsibilities, demonstration_pass
 
-        if policy.arch.num_codes < 2:
+        if policy.arch.continuous_codes or policy.arch.num_codes < 2:
             return torch.zeros(self.expert.mask.shape[1], dtype=torch.long)
         ll, _ = demonstration_pass(policy, self.expert, self.expert_prev)
         return balanced_responsibilities(ll).argmax(0).cpu()
