@@ -37,7 +37,7 @@ def test_the_train_command_has_one_subcommand_per_command_learner():
     parser = build_parser()
     train = next(a for a in parser._subparsers._group_actions[0].choices["train"]._actions if a.dest == "algo")
     assert sorted(train.choices) == sorted(n for n, lr in LEARNERS.items() if lr.command) == \
-        ["bc", "gail", "infogail", "infogail-pomdp"]
+        ["bc", "diffusion", "diffusion-codes", "gail", "infogail", "infogail-pomdp"]
     args = parser.parse_args(["train", "gail", "--demos", "d.npz"])
     assert args.learner == "gail"
 

@@ -31,18 +31,31 @@ from pomil.nn.policy import GaussianPolicy, PolicyArch
 from pomil.training import load_checkpoint, resolve_device, save_checkpoint
 
 
+def _policy_of(arch: Any) -> Any:
+    """The network of a checkpoint's architecture: a Gaussian policy, or a diffusion policy."""
+    if isinstance(arch, PolicyArch):
+        return GaussianPolicy(arch)
+    from pomil.nn.diffusion import DiffusionPolicy
+
+    return DiffusionPolicy(arch)
+
+
 class TrainedPolicy:
     """A policy with what it needs to act: its environment (``env``: id, kwargs,
-    observation_mask) and, for PPO experts, its observation normaliser."""
+    observation_mask) and, for PPO experts, its observation normaliser.
 
-    def __init__(self, policy: GaussianPolicy, algo: str, env: dict[str, Any], device: torch.device | str = "cpu",
+    A diffusion policy (learners ``diffusion``, ``diffusion-codes``) samples its plans with the
+    generator that :meth:`reset` seeds: its actions are one seed's draw whether or not ``act`` is
+    asked for deterministic ones (it has no mean action to return)."""
+
+    def __init__(self, policy: Any, algo: str, env: dict[str, Any], device: torch.device | str = "cpu",
                  obs_norm: RunningNorm | None = None) -> None:
         self.policy = policy.to(device).eval()
         self.obs_norm = obs_norm.to(device) if obs_norm is not None else None
         self.algo = algo
         self.env = env
         self.device = torch.device(device)
-        self._h: torch.Tensor | None = None
+        self._h: Any = None
         self._executed = executed_actions_fn(env.get("id", ""), env.get("kwargs") or {})
 
     @classmethod
@@ -50,12 +63,16 @@ class TrainedPolicy:
         device = resolve_device(device)  # a bad device is reported as one, before the file is read
         ckpt = load_checkpoint(path, map_location=device)
         try:
-            arch = PolicyArch(**ckpt["policy_arch"])
+            diffusion = isinstance(ckpt["policy_arch"], dict) and ckpt["policy_arch"].get("kind") == "diffusion"
+            if diffusion:
+                from pomil.nn.diffusion import DiffusionArch
+
+            arch = DiffusionArch(**ckpt["policy_arch"]) if diffusion else PolicyArch(**ckpt["policy_arch"])
             for f in dataclasses.fields(arch):  # the file's values, with the declared types (no tensors, no None)
                 value, tp = getattr(arch, f.name), {"int": int, "float": (int, float), "bool": bool, "str": str}[f.type]
                 if not isinstance(value, tp) or (f.type != "bool" and isinstance(value, bool)):
                     raise TypeError(f"policy_arch.{f.name} is {value!r:.40}")
-            policy = GaussianPolicy(arch)
+            policy = _policy_of(arch)
             policy.load_state_dict(ckpt["policy"])
             obs_norm = None
             if ckpt.get("obs_norm") is not None:
@@ -189,10 +206,13 @@ class TrainedPolicy:
             raise InvalidArgument(f"observations must be finite; rows {rows[:10]} hold NaN/inf (state unchanged)")
         if self.obs_norm is not None:
             obs = self.obs_norm(obs)
-        dist, self._h = self.policy.step(obs, self._prev, self._h, self._start, self._codes)
-        action = dist.mean
-        if not deterministic:
-            action = action + dist.stddev * torch.randn(dist.mean.shape, generator=self._gen, device=self.device)
+        if isinstance(self.policy, GaussianPolicy):
+            dist, self._h = self.policy.step(obs, self._prev, self._h, self._start, self._codes)
+            action = dist.mean
+            if not deterministic:
+                action = action + dist.stddev * torch.randn(dist.mean.shape, generator=self._gen, device=self.device)
+        else:  # a diffusion policy: its receding-horizon plans, drawn with this generator
+            action, self._h = self.policy.act(obs, self._h, self._start, self._codes, self._gen)
         self._prev = self._executed(action)  # a_{t-1} as the environment carried it out, as in training
         self._start = torch.zeros_like(self._start)
         return action.cpu().numpy() if as_numpy else action

@@ -29,7 +29,8 @@ on other seeds.  Spec keys::
     policy_rows = ["..."]        the rows whose policies are kept (default: every row)
     [demos]                      file = "data/x.npz", record = "pomil demos arguments"
     [evaluation]                 episodes_per_code, code_values, episodes_per_value
-    [settings.adversarial]       settings of every adversarial row ([settings.bc]: every BC row)
+    [settings.adversarial]       settings of every adversarial row ([settings.bc], [settings.diffusion]: every
+                                 BC, diffusion row)
     [[rows]]                     name, learner, settings = {...}, demos = {file, record}
     [grid]                       key = [v1, v2]: every row once per combination ("ROW key=v1 ...")
 """
@@ -57,7 +58,7 @@ import torch
 from pomil.config import check_fields, load_config_file, option, parse_kwargs, resolved, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.errors import PomilError
-from pomil.learners import ADVERSARIAL, LEARNERS
+from pomil.learners import ADVERSARIAL, DIFFUSION, LEARNERS
 from pomil.learners import learner as learner_named
 from pomil.parallel import run_jobs, usable_cpus
 from pomil.training import write_json
@@ -72,6 +73,8 @@ CONTINUOUS_SUCCESS = 0.9
 TASKS_SUCCESS = {"normalised_return": 0.7, "progress": 0.7}
 """Tasks: a seed succeeds when, on every task, the code matched to it reaches these figures."""
 SUMMARY_KEYS = ("mean_purity", "min_purity", "modes_covered", "nmi", "overall_none_share")
+EPISODE_KEYS = ("coverage", "episode_purity", "switch_share")
+"""Circles figures over all of a policy's episodes (``evaluate_circles``), in results measured since pomil had them."""
 METRICS = ("normalised_return", "progress", "displacement_ratio")
 SPEED_METRICS = ("on_task_share", "speed_error")
 REFERENCE_RTOL = 0.01
@@ -119,8 +122,8 @@ class Row:
     settings: dict[str, Any] = field(default_factory=dict)
 
     @property
-    def kind(self) -> Literal["adversarial", "bc"]:
-        return "adversarial" if self.learner in ADVERSARIAL else "bc"
+    def kind(self) -> Literal["adversarial", "diffusion", "bc"]:
+        return "adversarial" if self.learner in ADVERSARIAL else "diffusion" if self.learner in DIFFUSION else "bc"
 
 
 @dataclass(frozen=True)
@@ -141,7 +144,7 @@ class Spec:
     policies: Literal["all", "first", "none"] = "none"
     policy_rows: tuple[str, ...] = ()
     settings: dict[str, dict[str, Any]] = field(default_factory=dict)
-    """Settings of every row of a kind (``adversarial``, ``bc``), under the row's own."""
+    """Settings of every row of a kind (``adversarial``, ``diffusion``, ``bc``), under the row's own."""
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Settings given on the command line for every row of a kind, over the row's own."""
 
@@ -206,7 +209,7 @@ def spec_from_dict(data: dict[str, Any], name: str, source: str) -> Spec:
     evaluation = data.get("evaluation", {})
     _known(evaluation, ("episodes_per_code", "code_values", "episodes_per_value"), f"{source}: [evaluation]")
     settings = data.get("settings", {})
-    _known(settings, ("adversarial", "bc"), f"{source}: [settings]")
+    _known(settings, ("adversarial", "diffusion", "bc"), f"{source}: [settings]")
     spec = Spec(name=name, source=source, rows=tuple(rows), seeds=data.get("seeds", 1),
                 description=data.get("description", ""), results=data.get("results", ""),
                 row_label=data.get("row_label", "learner"), policies=data.get("policies", "none"),
@@ -510,7 +513,8 @@ def summarise(data: dict[str, Any]) -> dict[str, Any]:
         if not runs:
             r["summary"] = {}
         elif r["kind"] == "circles":
-            r["summary"] = {k: _mean_std([run[k] for run in runs]) for k in SUMMARY_KEYS}
+            keys = SUMMARY_KEYS + (EPISODE_KEYS if all(k in run for run in runs for k in EPISODE_KEYS) else ())
+            r["summary"] = {k: _mean_std([run[k] for run in runs]) for k in keys}
         elif r["kind"] == "code-radius":
             r["summary"] = {"abs_spearman": _mean_std(np.abs([run["spearman"] for run in runs]))}
         elif r["kind"] == "tasks":  # the speed figures too where every run has them
@@ -613,16 +617,24 @@ def _seeds_note(data: dict[str, Any]) -> str:
 
 
 def _circles_table(data: dict[str, Any], rows: dict[str, Any], label: str) -> str:
+    episodes = all(k in r["summary"] for r in rows.values() for k in EPISODE_KEYS)
+    more = " coverage | episode purity | switching |" if episodes else ""
     lines = [f"| {label} | modes | successes | per-code purity | min purity | modes covered | NMI(code, mode) "
-             "| none share | wall s / seed |", "|---|---|---|---|---|---|---|---|---|"]
+             f"| none share |{more} wall s / seed |", "|---" * (9 + 3 * episodes) + "|"]
     for name, r in rows.items():
         s = r["summary"]
+        cells = "".join(f" {_cell(s[k])} |" for k in EPISODE_KEYS) if episodes else ""
         lines.append(f"| {name} | {len(r['runs'][0]['per_code'][0]['mode_share'])} | {r['successes']}/{len(r['runs'])} "
                      f"| {_cell(s['mean_purity'])} | {_cell(s['min_purity'])} | {_cell(s['modes_covered'], 1)} "
-                     f"| {_cell(s['nmi'])} | {_cell(s['overall_none_share'])} | {np.mean(r['wall_s']):.0f} |")
+                     f"| {_cell(s['nmi'])} | {_cell(s['overall_none_share'])} |{cells} {np.mean(r['wall_s']):.0f} |")
     lines += ["", f"{_seeds_note(data)}; {data['spec']['episodes_per_code']} stochastic rollouts per code; learners "
               "without latent codes are scored as a single code (NMI 0 by definition). A seed succeeds when its min "
               f"purity is >= {MODES_SUCCESS['min_purity']}, every mode is covered and NMI >= {MODES_SUCCESS['nmi']}."]
+    if episodes:
+        lines[-1] += (" Over all episodes, the codes drawn evenly (free sampling): coverage is the entropy of the "
+                      "modes' shares over log M (1: every mode equally often); episode purity the share of episodes "
+                      "whose three thirds are each in the same mode, switching the share whose thirds visit two "
+                      "modes or more.")
     return "\n".join(lines) + "\n"
 
 
@@ -675,6 +687,19 @@ def _tasks_table(data: dict[str, Any], rows: dict[str, Any], label: str) -> str:
                   "On-task share: the share of the matched code's episodes nearest its task; speed error: |the code's "
                   "mean speed - the expert's|; purity: a code's largest share. Expert speeds: "
                   + ", ".join(f"{t} {v:.2f} m/s" for t, v in reference["expert_speed"].items()) + "."]
+    free = {n: r for n, r in rows.items() if all("free" in run for run in r["runs"])}
+    if free:
+        lines += ["", f"| {label} | " + " | ".join(f"{t}: share" for t in tasks) + " | standing | coverage | "
+                  "episode purity | switching |", "|---|" + "---|" * (len(tasks) + 4)]
+        for name, r in free.items():
+            runs = [run["free"] for run in r["runs"]]
+            cells = [_cell(_mean_std([f["mode_share"][t] for f in runs])) for t in tasks]
+            cells += [_cell(_mean_std([f[k] for f in runs])) for k in ("still_share", *EPISODE_KEYS)]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines += ["", "Free sampling: the first task's evaluation episodes, the codes drawn evenly (the tasks share "
+                  "their dynamics), each assigned to the task whose expert's signed displacement per step is nearest "
+                  "its own, or to standing when 0 is nearer; coverage: the tasks' entropy over log J; episode purity: "
+                  "the share of episodes whose three thirds are each on the same task; switching: on two or more."]
     return "\n".join(lines) + "\n"
 
 

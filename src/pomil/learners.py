@@ -94,11 +94,20 @@ LEARNERS: dict[str, Learner] = {learner.name: learner for learner in (
     _ablation("igp-policy-belief", "ablation: a GRU belief in the policy only; value, critic and posterior "
                                    "feed-forward", belief="policy"),
     _ablation("igp-no-bc", "ablation: InfoGAIL-POMDP without the BC term in the policy loss", bc_weight=0.0),
+    Learner("diffusion", "Diffusion Policy (peer): a denoiser over action horizons from recent observations, "
+                         "DDIM sampling, receding horizon; no codes (optional extra pomil[diffusion])",
+            "pomil.algos.diffusion", "DiffusionConfig", "train_diffusion", {"conditioning": "none"}, cost=0.25),
+    Learner("diffusion-codes", "Diffusion Policy conditioned on the codes InfoGAIL-POMDP's mixture warm start assigns "
+                               "to the demonstration episodes, without labels (optional extra pomil[diffusion])",
+            "pomil.algos.diffusion", "DiffusionConfig", "train_diffusion", {"conditioning": "codes"}, cost=0.5),
 )}
 """Every learner by name."""
 
 ADVERSARIAL = tuple(name for name, learner in LEARNERS.items() if learner.module == "pomil.algos.adversarial")
 """The adversarial learners (one loop, configured), the ablations included."""
+
+DIFFUSION = tuple(name for name, learner in LEARNERS.items() if learner.module == "pomil.algos.diffusion")
+"""The diffusion peers (one learner, with or without codes)."""
 
 ABLATIONS = tuple(name for name in ADVERSARIAL if name.startswith("igp-"))
 """InfoGAIL-POMDP with one part taken away (what each part adds)."""

@@ -55,3 +55,23 @@ def test_spearman_exact_values_with_and_without_ties():
     assert spearman(np.repeat(np.arange(9), 20), np.arange(180)) == pytest.approx(math.sqrt(1 - 399 / 32399))
     with pytest.raises(ValueError, match="spearman"):
         spearman([1, 2], [1, np.nan])
+
+
+def test_coverage_is_the_modes_entropy_over_log_m():
+    from pomil.eval.metrics import coverage
+
+    assert coverage(np.array([0, 1, 0, 1]), 2) == pytest.approx(1.0)
+    assert coverage(np.array([0, 0, 0, -1]), 2) == 0.0  # one mode (the "none" episode is not a mode)
+    p = np.array([0.75, 0.25])
+    assert coverage(np.array([0, 0, 0, 1, -1]), 2) == pytest.approx(-(p * np.log(p)).sum() / math.log(2))
+    assert coverage(np.array([0, 1, 2, 2]), 3) == pytest.approx(1.5 * math.log(2) / math.log(3))
+    assert coverage(np.array([-1, -1]), 2) == 0.0 and coverage(np.array([0, 0]), 1) == 0.0
+
+
+def test_episode_purity_and_switching():
+    from pomil.eval.metrics import episode_purity
+
+    seg = np.array([[0, 0, 0], [1, 1, 1], [0, 1, 1], [0, -1, 0], [-1, -1, -1]])
+    assert episode_purity(seg) == {"episode_purity": 0.4, "switch_share": 0.2}
+    with pytest.raises(ValueError, match="segment_modes"):
+        episode_purity(np.array([0, 1]))

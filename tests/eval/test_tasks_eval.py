@@ -52,3 +52,20 @@ def test_reference_keeps_expert_speeds_only_when_every_task_has_one():
     assert reference_of(md)["expert_speed"] == {"forward": 1.8, "backward": -2.1}
     assert "expert_speed" not in reference_of({**REFERENCE, "expert_speed": {"forward": 1.8}})
     assert "expert_speed" not in reference_of(REFERENCE)
+
+
+def test_rates_are_assigned_to_the_nearest_task_or_to_standing():
+    from pomil.eval.tasks import free_sampling, task_of_rates
+
+    ref = {**REFERENCE, "tasks": {"forward": {"forward_reward_weight": 1.0, "max_episode_steps": 100},
+                                  "backward": {"forward_reward_weight": -1.0, "max_episode_steps": 100}}}
+    # expert rates: forward +0.02 per step, backward -0.01, standing 0
+    assert task_of_rates(np.array([0.03, 0.012, 0.011, 0.009, -0.004, -0.006, -0.5]), ref).tolist() == \
+        [0, 0, 0, -1, -1, 1, 1]
+    roll = {"displacement": np.array([2.0, -1.0, 0.0, 2.0]), "length": np.array([100, 100, 100, 100]),
+            "segment_rates": np.array([[0.02] * 3, [-0.01] * 3, [0.0] * 3, [0.02, -0.01, 0.02]])}
+    free = free_sampling(roll, ref)
+    assert free["mode_share"] == {"forward": 0.5, "backward": 0.25} and free["still_share"] == 0.25
+    p = np.array([2 / 3, 1 / 3])
+    assert free["coverage"] == pytest.approx(-(p * np.log(p)).sum() / np.log(2))
+    assert (free["episode_purity"], free["switch_share"]) == (0.5, 0.25)

@@ -10,7 +10,7 @@ import torch
 from pomil.api import TrainedPolicy
 from pomil.envs.circles import DEFAULT_NONE_THRESHOLD, ENV_ID, CirclesSpec, CirclesVecEnv, classify_modes, fit_circles
 from pomil.errors import PomilError
-from pomil.eval.metrics import mode_metrics, spearman
+from pomil.eval.metrics import EPISODE_SEGMENTS, coverage, episode_purity, mode_metrics, spearman
 from pomil.nn.codes import prior_grid
 
 
@@ -47,11 +47,17 @@ def rollout_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: i
 
 def evaluate_circles(policy: TrainedPolicy, episodes_per_code: int = 100, seed: int = 0, *, deterministic: bool = False,
                      threshold: float = DEFAULT_NONE_THRESHOLD) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Mode metrics of the policy's rollouts (and the rollouts themselves)."""
+    """Mode metrics of the policy's rollouts (and the rollouts themselves): per code (``mode_metrics``), and
+    over all its episodes, with the codes drawn evenly as a user sampling freely would: ``coverage`` (the
+    modes' entropy over log M) and whether an episode stays in one mode (``episode_purity``, ``switch_share``:
+    each of its :data:`EPISODE_SEGMENTS` parts classified alone)."""
     spec = circles_spec_of(policy)
     roll = rollout_circles(policy, episodes_per_code, seed, deterministic=deterministic)
     roll["modes"] = classify_modes(roll["positions"], spec, threshold)
     metrics = mode_metrics(roll["codes"], roll["modes"], max(policy.num_codes, 1), spec.num_modes)
+    thirds = np.array_split(np.arange(roll["positions"].shape[1]), EPISODE_SEGMENTS)
+    segments = np.stack([classify_modes(roll["positions"][:, part], spec, threshold) for part in thirds], 1)
+    metrics.update(coverage=coverage(roll["modes"], spec.num_modes), **episode_purity(segments))
     metrics.update(algo=policy.algo, num_codes=policy.num_codes, episodes_per_code=episodes_per_code,
                    deterministic=deterministic, none_threshold=threshold, seed=seed,
                    mean_return=float(roll["returns"].mean()))

@@ -89,3 +89,32 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
     rx, ry = rx - rx.mean(), ry - ry.mean()
     denom = np.sqrt((rx ** 2).sum() * (ry ** 2).sum())
     return float((rx * ry).sum() / denom) if denom > 0 else 0.0
+
+
+EPISODE_SEGMENTS = 3
+"""Per-episode purity: an episode is cut into this many consecutive parts, each classified alone."""
+
+
+def coverage(modes: np.ndarray, num_modes: int) -> float:
+    """How evenly a policy's episodes spread over the real modes: the entropy of their shares among the
+    episodes in some mode, over log(num_modes): 1 when every mode has an equal share, 0 for one mode (or
+    none, or a single mode to cover)."""
+    modes = np.asarray(modes, dtype=np.int64)
+    real = modes[modes >= 0]
+    if num_modes < 2 or len(real) == 0:
+        return 0.0
+    p = np.bincount(real, minlength=num_modes) / len(real)
+    p = p[p > 0]
+    return float(-(p * np.log(p)).sum() / np.log(num_modes))
+
+
+def episode_purity(segment_modes: np.ndarray) -> dict[str, float]:
+    """Whether episodes stay in one mode: ``segment_modes`` (E, S), the mode of each of S consecutive
+    segments of each episode (-1: none).  ``episode_purity``: the share of episodes whose segments are
+    all in one real mode; ``switch_share``: the share whose segments visit two real modes or more."""
+    seg = np.asarray(segment_modes, dtype=np.int64)
+    if seg.ndim != 2 or seg.shape[1] < 1:
+        raise ValueError(f"segment_modes must be (episodes, segments), got {seg.shape}")
+    pure = (seg >= 0).all(1) & (seg == seg[:, :1]).all(1)
+    distinct = [len(set(row[row >= 0].tolist())) for row in seg]
+    return {"episode_purity": float(pure.mean()), "switch_share": float(np.mean(np.array(distinct) >= 2))}

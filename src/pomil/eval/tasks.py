@@ -35,6 +35,7 @@ from pomil.api import TrainedPolicy
 from pomil.demos import x_position
 from pomil.envs import make_vec_env
 from pomil.errors import PomilError
+from pomil.eval.metrics import EPISODE_SEGMENTS, coverage, episode_purity
 from pomil.training import EpisodeProgress, progress_bar
 
 
@@ -55,17 +56,47 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
         x0 = x_position(env.sim)
         policy.reset(episodes, codes if policy.num_codes else None, seed=seed)
         ret, length, tick = np.zeros(episodes), np.zeros(episodes, dtype=np.int64), EpisodeProgress(bar)
+        path = [x0]
         while not env.sim.done.all():
             alive = ~env.sim.done
             obs, r, _, _ = env.step(torch.as_tensor(policy.act(obs, deterministic)))
             ret += r.numpy()
             length += alive
+            path.append(np.where(alive, x_position(env.sim), path[-1]))  # an ended episode stays where it ended
             tick(env.sim.done)
         displacement = x_position(env.sim) - x0
         speed = displacement / (np.maximum(length, 1) * getattr(env.sim, "dt", np.nan))
-        return {"returns": ret, "displacement": displacement, "length": length, "speed": speed}
+        ends = np.round(np.arange(EPISODE_SEGMENTS + 1)[:, None] * length[None] / EPISODE_SEGMENTS).astype(np.int64)
+        x_at = np.stack(path)[ends, np.arange(episodes)[None]]  # (segments + 1, episodes)
+        segment_rates = (np.diff(x_at, axis=0) / np.maximum(np.diff(ends, axis=0), 1)).T
+        return {"returns": ret, "displacement": displacement, "length": length, "speed": speed,
+                "segment_rates": segment_rates}
     finally:
         env.close()
+
+
+def task_of_rates(rates: np.ndarray, reference: dict[str, Any]) -> np.ndarray:
+    """The task each rate (displacement per step, any shape) looks like: the index of the task whose expert's
+    signed rate (its displacement in the task's direction over its episode's ``max_episode_steps``, 1000 when
+    unset) is nearest; -1 where standing still (rate 0) is nearer than every task."""
+    tasks = list(reference["tasks"])
+    targets = np.array([0.0] + [np.sign(reference["tasks"][t].get("forward_reward_weight", 1.0))
+                                * float(reference["expert_displacement"][t])
+                                / float(reference["tasks"][t].get("max_episode_steps", 1000)) for t in tasks])
+    nearest = np.abs(np.asarray(rates)[..., None] - targets).argmin(-1)
+    return nearest - 1
+
+
+def free_sampling(roll: dict[str, np.ndarray], reference: dict[str, Any]) -> dict[str, Any]:
+    """What a user who samples freely (the codes drawn evenly) sees on one task's rollouts, which share the
+    dynamics of every task: each episode's task by its mean rate (:func:`task_of_rates`), their shares and
+    ``coverage`` (entropy over log J), and whether an episode keeps to one task (``episode_purity``,
+    ``switch_share``: each third of it classified alone)."""
+    tasks = list(reference["tasks"])
+    modes = task_of_rates(roll["displacement"] / np.maximum(roll["length"], 1), reference)
+    return {"mode_share": {t: float((modes == j).mean()) for j, t in enumerate(tasks)},
+            "still_share": float((modes == -1).mean()), "coverage": coverage(modes, len(tasks)),
+            **episode_purity(task_of_rates(roll["segment_rates"], reference))}
 
 
 def task_scores(returns: np.ndarray, displacement: np.ndarray, reference: dict[str, Any],
@@ -128,10 +159,13 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
     per_pair: dict[str, dict[str, dict[str, float]]] = {}
     progress = np.zeros((k, len(tasks)))
     speeds = []
+    free = None
     for j, task in enumerate(tasks):
         roll = rollout_locomotion(policy, reference["tasks"][task], k * episodes_per_code, seed=seed,
                                   deterministic=deterministic, codes=codes, observation_mask=mask, bar=bar)
         speeds.append(roll["speed"])
+        if free is None and not np.isnan(roll["displacement"]).any():
+            free = free_sampling(roll, reference)
         for c in range(k):
             sel = codes == c
             s = task_scores(roll["returns"][sel].mean(), roll["displacement"][sel].mean(), reference, task)
@@ -153,4 +187,4 @@ def evaluate_tasks(policy: TrainedPolicy, reference: dict[str, Any], episodes_pe
                        max_speed_error=max(per_task[t]["speed_error"] for t in tasks))
     return {"tasks": per_task, "codes": per_pair, "num_codes": policy.num_codes, "episodes_per_code": episodes_per_code,
             "deterministic": deterministic, "seed": seed, **summary,
-            **({} if behaviour is None else {"behaviour": behaviour})}
+            **({} if behaviour is None else {"behaviour": behaviour}), **({} if free is None else {"free": free})}
