@@ -254,6 +254,19 @@ def test_reproduce_hopper_first_seed_and_merge_join_seeds(tmp_path, capsys):
         a["reference"]["expert_returns"], {t: v * 1.005 for t, v in b["reference"]["expert_returns"].items()}]
     assert main(["reproduce", "merge", str(tmp_path / "a"), str(tmp_path / "far"), "--out", str(tmp_path / "f")]) == 2
     assert "reference.expert_returns differs" in capsys.readouterr().err and not (tmp_path / "f").exists()
+    # other rows of the spec on the same seeds join as rows of their own; unequal seed counts are refused
+    assert main(["reproduce", "hopper", "--seeds", "2", "--rows", "bc-gru", "--bc-iterations", "2",
+                 "--episodes-per-code", "2", "--demos", str(DEMOS), "--out", str(tmp_path / "g"),
+                 "--runs", str(tmp_path / "runs" / "g"), "--no-progress"]) == 0
+    assert main(["reproduce", "merge", str(tmp_path / "ab"), str(tmp_path / "g"), "--out", str(tmp_path / "rows")]) == 0
+    rows = json.loads((tmp_path / "rows" / "metrics.json").read_text())
+    g = json.loads((tmp_path / "g" / "metrics.json").read_text())
+    assert list(rows["rows"]) == ["bc-mlp", "bc-gru"] and list(rows["spec"]["rows"]) == ["bc-mlp", "bc-gru"]
+    assert rows["rows"]["bc-gru"]["runs"] == g["rows"]["bc-gru"]["runs"]
+    assert rows["rows"]["bc-mlp"]["runs"] == ab["rows"]["bc-mlp"]["runs"]
+    assert "| bc-gru | 0/2 |" in (tmp_path / "rows" / "table.md").read_text()
+    assert main(["reproduce", "merge", str(tmp_path / "a"), str(tmp_path / "g"), "--out", str(tmp_path / "r1")]) == 2
+    assert "different numbers of seeds" in capsys.readouterr().err and not (tmp_path / "r1").exists()
 
 
 def test_demo_episodes_default_to_the_settings(tmp_path, monkeypatch, capsys):

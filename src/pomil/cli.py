@@ -612,7 +612,7 @@ def _add_reproduce(sub: argparse._SubParsersAction) -> None:
                                           "figure (--list names the shipped ones)")
     rp.add_argument("spec", nargs="?", metavar="SPEC",
                     help="a spec file (.toml) or a shipped experiment's name; 'merge' joins results run on other "
-                         "seeds: pomil reproduce merge DIR DIR ... --out DIR")
+                         "seeds or rows: pomil reproduce merge DIR DIR ... --out DIR")
     rp.add_argument("sources", nargs="*", metavar="DIR", help="with merge: the results directories to join")
     rp.add_argument("--list", action="store_true", help="name the shipped experiments and what each measures")
     rp.add_argument("--policies", action=argparse.BooleanOptionalAction, default=True,

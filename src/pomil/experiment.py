@@ -18,7 +18,7 @@ The evaluation follows the demonstrations: circles are scored by mode metrics
 fitted radius, demonstrations that name their tasks (Hopper, any ``pomil demos merge``) by
 per-task scores of the code matched to each task.  ``pomil sweep`` runs a spec made from a
 config file and a grid of settings; ``pomil reproduce merge`` joins results of one spec run
-on other seeds.  Spec keys::
+on other seeds or rows.  Spec keys::
 
     description = "..."          what it measures (shown in the table)
     results = "results/circles"  where its committed results live
@@ -617,13 +617,13 @@ def _seeds_note(data: dict[str, Any]) -> str:
 
 
 def _circles_table(data: dict[str, Any], rows: dict[str, Any], label: str) -> str:
-    episodes = all(k in r["summary"] for r in rows.values() for k in EPISODE_KEYS)
+    episodes = any(k in r["summary"] for r in rows.values() for k in EPISODE_KEYS)  # "-": measured before them
     more = " coverage | episode purity | switching |" if episodes else ""
     lines = [f"| {label} | modes | successes | per-code purity | min purity | modes covered | NMI(code, mode) "
              f"| none share |{more} wall s / seed |", "|---" * (9 + 3 * episodes) + "|"]
     for name, r in rows.items():
         s = r["summary"]
-        cells = "".join(f" {_cell(s[k])} |" for k in EPISODE_KEYS) if episodes else ""
+        cells = "".join(f" {_cell(s[k]) if k in s else '-'} |" for k in EPISODE_KEYS) if episodes else ""
         lines.append(f"| {name} | {len(r['runs'][0]['per_code'][0]['mode_share'])} | {r['successes']}/{len(r['runs'])} "
                      f"| {_cell(s['mean_purity'])} | {_cell(s['min_purity'])} | {_cell(s['modes_covered'], 1)} "
                      f"| {_cell(s['nmi'])} | {_cell(s['overall_none_share'])} |{cells} {np.mean(r['wall_s']):.0f} |")
@@ -705,10 +705,10 @@ def _tasks_table(data: dict[str, Any], rows: dict[str, Any], label: str) -> str:
 
 # ================================================================ merge
 def merge_results(sources: list[Path], out: Path, policies: bool = True) -> dict[str, Any]:
-    """Join results of one spec run on other seeds (``--first-seed``) into ``out``: every row's runs in seed
-    order, its policies, the rollouts, the table and figure over all seeds.
+    """Join results of one spec run on other seeds (``--first-seed``), or of other rows of it (``--rows``), into
+    ``out``: every row's runs in seed order, its policies, the rollouts, the table and figure over all seeds.
 
-    The sources must agree on what they measured: the rows, their learners and resolved settings (a
+    The sources must agree on what they measured: the rows they share, their learners and resolved settings (a
     setting only one of them records, a field added since the other ran, is named in a note and not
     compared), the evaluation, and the demonstrations' reference returns (within :data:`REFERENCE_RTOL`;
     each source's is kept in ``merged_from``); a row's seeds must not repeat.  ``policies=False`` copies
@@ -721,6 +721,10 @@ def merge_results(sources: list[Path], out: Path, policies: bool = True) -> dict
     for src, r in rest:
         _check_same(first_src, first, src, r)
         for name, row in r["rows"].items():
+            if name not in merged["rows"]:  # a row the sources before had not run
+                merged["rows"][name] = json.loads(json.dumps(row))
+                merged["spec"]["rows"][name] = r["spec"]["rows"][name]
+                continue
             to = merged["rows"][name]
             repeated = sorted({x["train_seed"] for x in to["runs"]} & {x["train_seed"] for x in row["runs"]})
             if repeated:
@@ -779,8 +783,7 @@ def _check_same(first_src: Path, first: dict[str, Any], src: Path, r: dict[str, 
 
     same("spec", {k: v for k, v in first["spec"].items() if k not in _FREE},
          {k: v for k, v in r["spec"].items() if k not in _FREE})
-    same("rows", list(first["rows"]), list(r["rows"]))
-    for name, row in r["rows"].items():
+    for name, row in ((n, row) for n, row in r["rows"].items() if n in first["rows"]):
         mine = first["rows"][name]
         same(f"rows.{name}.learner", mine["learner"], row["learner"])
         one_sided = sorted(set(mine["config"]) ^ set(row["config"]))
