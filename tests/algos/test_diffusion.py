@@ -178,3 +178,41 @@ def test_a_short_circles_run_covers_both_circles(demos_path, tmp_path):
                                            iterations=1500))
     metrics, _ = evaluate_circles(TrainedPolicy.load(ckpt), episodes_per_code=200, seed=0)
     assert min(metrics["overall_mode_share"]) >= 0.3, metrics["overall_mode_share"]
+
+
+def test_codes_come_from_the_mixture_warm_start(demos_path, tmp_path, monkeypatch):
+    """diffusion-codes: each episode's code is its most likely one under InfoGAIL-POMDP's warm start (run into
+    OUT/warm-start, reused on --resume, or given as codes_from); the run records their shares and agreement with
+    the labels; the policy takes a code per episode."""
+    import dataclasses
+
+    import pomil.algos.adversarial as adversarial
+    from pomil.algos.diffusion import episode_codes
+    from pomil.data import Demonstrations
+
+    runs = []
+    train = adversarial.train_adversarial
+
+    def short(cfg, resume=False):  # the default warm start, shortened for the test
+        runs.append(cfg.out)
+        return train(dataclasses.replace(cfg, warm_start_iterations=30, posterior_init_iterations=5), resume)
+
+    monkeypatch.setattr(adversarial, "train_adversarial", short)
+    cfg = _cfg(demos_path, tmp_path / "dc", conditioning="codes", iterations=4, checkpoint_every=2)
+    ckpt = train_diffusion(cfg)
+    assert runs == [str(tmp_path / "dc" / "warm-start")]
+    record = load_checkpoint(ckpt)["record"]
+    demos = Demonstrations.load(demos_path)
+    codes, k = episode_codes(tmp_path / "dc" / "warm-start" / "checkpoint.pt", demos, "pomil/Circles-v0",
+                             demos.metadata["env_kwargs"], torch.device("cpu"))
+    assert k == 2 and record["code_shares"] == [round(float((codes == c).float().mean()), 4) for c in range(2)]
+    assert 0.0 <= record["codes_nmi_with_labels"] <= 1.0
+    tp = TrainedPolicy.load(ckpt)
+    assert tp.num_codes == 2 and tp.algo == "diffusion-codes"
+    tp.reset(4, codes=[0, 1, 0, 1], seed=0)
+    assert tp.act(torch.zeros(4, 2).numpy()).shape == (4, 2)
+    train_diffusion(dataclasses.replace(cfg, iterations=6), resume=True)  # the warm start is not run again
+    assert len(runs) == 1
+    given = train_diffusion(dataclasses.replace(cfg, out=str(tmp_path / "given"),
+                                                codes_from=str(tmp_path / "dc" / "warm-start" / "checkpoint.pt")))
+    assert len(runs) == 1 and load_checkpoint(given)["record"]["code_shares"] == record["code_shares"]

@@ -62,7 +62,7 @@ class DiffusionConfig(RunConfig):
         "squaredcos_cap_v2", "the noise schedule (diffusers' names; squaredcos_cap_v2: the cosine schedule)")
     iterations: int = option(4000, "gradient steps", within="[1, inf)")
     batch_size: int = option(256, "(episode, step) places per gradient step", within="[1, inf)")
-    lr: float = option(3e-4, "AdamW learning rate at its peak (linear warm-up, then cosine decay to 0)",
+    lr: float = option(1e-3, "AdamW learning rate at its peak (linear warm-up, then cosine decay to 0)",
                        within="(0, inf)")
     lr_warmup: int = option(200, "gradient steps of the learning rate's linear warm-up", within="[0, inf)")
     weight_decay: float = option(1e-6, "AdamW weight decay", within="[0, inf)")
