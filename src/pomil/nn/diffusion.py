@@ -19,7 +19,7 @@ samples a new plan from its window; the others go on with theirs.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import torch
@@ -66,6 +66,10 @@ class DiffusionArch:
     kind: str = "diffusion"
 
     def __post_init__(self) -> None:
+        for f in fields(self):  # a checkpoint's values: the declared types (no bools for numbers)
+            value = getattr(self, f.name)
+            if not isinstance(value, {"int": int, "str": str}[f.type]) or isinstance(value, bool):
+                raise TypeError(f"{f.name} is {value!r:.40}")
         if self.kind != "diffusion":
             raise ValueError(f"kind must be 'diffusion', got {self.kind!r}")
         if not 1 <= self.execute_horizon <= self.action_horizon:
