@@ -379,3 +379,27 @@ def test_resume_with_iterations_below_the_checkpoint_is_refused_and_equal_is_not
     assert main([*flags, "--iterations", "10"]) == 0
     assert "is already at iteration 10: nothing to do" in capsys.readouterr().err
     assert (out / "checkpoint.pt").read_bytes() == before
+
+
+def test_the_guard_finds_the_first_nonfinite_tensor_and_lets_large_finite_ones_pass(tmp_path):
+    """The fused check over all tensors at once, then the exact one: a NaN anywhere is named, a tensor whose
+    norm overflows but whose values are finite passes."""
+    from pomil.training import DivergenceGuard, all_finite
+
+    big, nan = torch.full((10_000,), 1e30), torch.tensor([1.0, float("nan")])
+    assert not all_finite([big]) and not all_finite([nan]) and all_finite([torch.ones(2), torch.zeros(2).long()])
+    guard = DivergenceGuard(tmp_path / "checkpoint.pt", {})
+    nets = {"a": torch.nn.Linear(2, 2), "b": None}
+    with torch.no_grad():
+        nets["a"].weight.fill_(1e30)
+    guard.params(3, nets)
+    weight = nets["a"].weight
+    weight.grad = big[:4].view(2, 2).clone()
+    guard.grads(3, "policy", [weight])
+    with torch.no_grad():
+        nets["a"].bias[1] = float("inf")
+    with pytest.raises(DivergenceError, match="iteration 3: a parameter 'bias' is inf"):
+        guard.params(3, nets)
+    weight.grad[0, 1] = float("nan")
+    with pytest.raises(DivergenceError, match="iteration 4: policy gradient is nan"):
+        guard.grads(4, "policy", [weight])

@@ -339,16 +339,20 @@ class DivergenceGuard:
 
     def grads(self, step: int | str, name: str, params: Iterable[torch.nn.Parameter]) -> None:
         """Every gradient of ``params`` (after backward, before the optimiser step) must be finite."""
-        for p in params:
-            if p.grad is not None:
-                self._tensor(step, f"{name} gradient", p.grad)
+        grads = [p.grad for p in params if p.grad is not None]
+        if all_finite(grads):
+            return
+        for g in grads:
+            self._tensor(step, f"{name} gradient", g)
 
     def params(self, step: int | str, nets: dict[str, torch.nn.Module | None]) -> None:
         """Every parameter and buffer of every net must be finite."""
-        for name, net in nets.items():
-            for key, t in (net.state_dict() if net is not None else {}).items():
-                if t.is_floating_point():
-                    self._tensor(step, f"{name} parameter '{key}'", t)
+        named = [(f"{name} parameter '{key}'", t) for name, net in nets.items() if net is not None
+                 for key, t in net.state_dict().items() if t.is_floating_point()]
+        if all_finite([t for _, t in named]):
+            return
+        for quantity, t in named:
+            self._tensor(step, quantity, t)
 
     def _tensor(self, step: int | str, quantity: str, t: torch.Tensor) -> None:
         if not bool(torch.isfinite(t).all()):
@@ -367,6 +371,19 @@ class DivergenceGuard:
             after = f"no checkpoint of this run was written: start it again with {lower}"
         raise DivergenceError(f"{where}: {quantity} is {bad} (the run diverged); "
                               f"{'try a lower ' + hint + '; ' if hint else ''}{after}")
+
+
+def all_finite(tensors: list[torch.Tensor]) -> bool:
+    """True when every element of the floating ``tensors`` is surely finite: one fused norm per tensor (a NaN or
+    inf element makes its norm NaN or inf).  False asks for the exact check, element by element: a norm can also
+    overflow on finite values."""
+    floats = [t.detach() for t in tensors if t.is_floating_point()]
+    if not floats:
+        return True
+    try:
+        return bool(torch.isfinite(torch.stack([n.float() for n in torch._foreach_norm(floats)])).all())
+    except (RuntimeError, TypeError):  # tensors that one fused call cannot take together
+        return False
 
 
 def lr_hint(config: Any, *fields: str) -> str:
