@@ -69,6 +69,7 @@ def test_settings_of_a_kind_go_under_a_rows_own_and_the_command_lines_over_both(
 def _circles_run(seed, purity, nmi, covered=2):
     return {"train_seed": seed, "mean_purity": purity, "min_purity": purity, "modes_covered": covered, "nmi": nmi,
             "overall_none_share": 1 - purity, "per_code": [{"mode_share": [purity, 0.0]}] * 2,
+            "overall_mode_share": [purity, 0.0],
             "success": purity >= 0.95 and nmi >= 0.9 and covered == 2}
 
 
@@ -89,7 +90,7 @@ def test_summary_success_counts_and_table_come_from_the_runs():
                                    "switch_share": w} for s, c, p, w in ((0, 1.0, 0.9, 0.0), (1, 0.8, 0.7, 0.1))]}
     table = results_table(summarise(data))
     assert "| none share | coverage | episode purity | switching | wall s / seed |" in table
-    assert "| 0.25 ± 0.25 | - | - | - | 20 |" in table
+    assert "| 0.25 ± 0.25 | 0.00 ± 0.00 | - | - | 20 |" in table  # coverage from the modes' shares
     assert "| 0.50 ± 0.00 | 0.90 ± 0.10 | 0.80 ± 0.10 | 0.05 ± 0.05 | 6 |" in table
 
 
@@ -99,6 +100,6 @@ def test_rows_are_chosen_by_name_and_a_rows_name_chooses_its_grid_rows():
         f"igp-warm-start demos_per_mode={n}" for n in (1, 4, 11, 25)]
     assert [r.name for r in select_rows(spec, ("infogail-pomdp demos_per_mode=4",))] == [
         "infogail-pomdp demos_per_mode=4"]
-    assert len(select_rows(spec, ())) == 8
+    assert len(select_rows(spec, ())) == 16
     with pytest.raises(PomilError, match=r"--rows: no rows \['igp'\] in .*hopper-few-demos.toml"):
         select_rows(spec, ("igp",))

@@ -58,6 +58,7 @@ import torch
 from pomil.config import check_fields, load_config_file, option, parse_kwargs, resolved, to_dict
 from pomil.data import Demonstrations, atomic_write
 from pomil.errors import PomilError
+from pomil.eval.metrics import shares_coverage
 from pomil.learners import ADVERSARIAL, DIFFUSION, LEARNERS
 from pomil.learners import learner as learner_named
 from pomil.parallel import run_jobs, usable_cpus
@@ -513,8 +514,10 @@ def summarise(data: dict[str, Any]) -> dict[str, Any]:
         if not runs:
             r["summary"] = {}
         elif r["kind"] == "circles":
-            keys = SUMMARY_KEYS + (EPISODE_KEYS if all(k in run for run in runs for k in EPISODE_KEYS) else ())
+            keys = SUMMARY_KEYS + tuple(k for k in EPISODE_KEYS if all(k in run for run in runs))
             r["summary"] = {k: _mean_std([run[k] for run in runs]) for k in keys}
+            if "coverage" not in r["summary"]:  # measured before it was recorded: the same from the modes' shares
+                r["summary"]["coverage"] = _mean_std([shares_coverage(run["overall_mode_share"]) for run in runs])
         elif r["kind"] == "code-radius":
             r["summary"] = {"abs_spearman": _mean_std(np.abs([run["spearman"] for run in runs]))}
         elif r["kind"] == "tasks":  # the speed figures too where every run has them
@@ -721,9 +724,10 @@ def merge_results(sources: list[Path], out: Path, policies: bool = True) -> dict
     for src, r in rest:
         _check_same(first_src, first, src, r)
         for name, row in r["rows"].items():
-            if name not in merged["rows"]:  # a row the sources before had not run
+            if name not in merged["rows"]:  # a row the sources before had not run: its spec's description names it
                 merged["rows"][name] = json.loads(json.dumps(row))
                 merged["spec"]["rows"][name] = r["spec"]["rows"][name]
+                merged["spec"]["description"] = r["spec"].get("description", "")
                 continue
             to = merged["rows"][name]
             repeated = sorted({x["train_seed"] for x in to["runs"]} & {x["train_seed"] for x in row["runs"]})
@@ -781,8 +785,11 @@ def _check_same(first_src: Path, first: dict[str, Any], src: Path, r: dict[str, 
             raise PomilError(f"{src}/metrics.json: {key} differs from {first_src}'s ({b!r} against {a!r}); "
                              "only runs of the same experiment and settings on other seeds can be merged")
 
-    same("spec", {k: v for k, v in first["spec"].items() if k not in _FREE},
-         {k: v for k, v in r["spec"].items() if k not in _FREE})
+    def measured(spec: dict[str, Any]) -> dict[str, Any]:  # no overrides of a kind = none at all
+        return {k: ({kind: o for kind, o in v.items() if o} if k == "overrides" else v) for k, v in spec.items()
+                if k not in _FREE}
+
+    same("spec", measured(first["spec"]), measured(r["spec"]))
     for name, row in ((n, row) for n, row in r["rows"].items() if n in first["rows"]):
         mine = first["rows"][name]
         same(f"rows.{name}.learner", mine["learner"], row["learner"])

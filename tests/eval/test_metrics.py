@@ -66,6 +66,9 @@ def test_coverage_is_the_modes_entropy_over_log_m():
     assert coverage(np.array([0, 0, 0, 1, -1]), 2) == pytest.approx(-(p * np.log(p)).sum() / math.log(2))
     assert coverage(np.array([0, 1, 2, 2]), 3) == pytest.approx(1.5 * math.log(2) / math.log(3))
     assert coverage(np.array([-1, -1]), 2) == 0.0 and coverage(np.array([0, 0]), 1) == 0.0
+    from pomil.eval.metrics import shares_coverage
+
+    assert shares_coverage([0.6, 0.2]) == pytest.approx(coverage(np.array([0, 0, 0, 1, -1]), 2))
 
 
 def test_episode_purity_and_switching():

@@ -101,11 +101,16 @@ def coverage(modes: np.ndarray, num_modes: int) -> float:
     none, or a single mode to cover)."""
     modes = np.asarray(modes, dtype=np.int64)
     real = modes[modes >= 0]
-    if num_modes < 2 or len(real) == 0:
+    return shares_coverage(np.bincount(real, minlength=num_modes) / max(len(real), 1))
+
+
+def shares_coverage(shares: Any) -> float:
+    """:func:`coverage` from the modes' shares of all episodes (``overall_mode_share``; the rest in none)."""
+    p = np.asarray(shares, dtype=np.float64)
+    if len(p) < 2 or p.sum() <= 0:
         return 0.0
-    p = np.bincount(real, minlength=num_modes) / len(real)
-    p = p[p > 0]
-    return float(-(p * np.log(p)).sum() / np.log(num_modes))
+    p = p[p > 0] / p.sum()
+    return float(-(p * np.log(p)).sum() / np.log(len(shares)))
 
 
 def episode_purity(segment_modes: np.ndarray) -> dict[str, float]:
