@@ -37,3 +37,22 @@ def test_hopper_speed_variants_errors_are_one_line(variants, says, monkeypatch):
         hs.training_configs(args, [8], [(1, "float32", "gru")])
     lines = str(err.value).splitlines()
     assert len(lines) == 1 and lines[0].startswith("--variants: expected a JSON object") and says in lines[0]
+
+
+def test_copycat_fits_the_previous_action(monkeypatch, tmp_path, capsys):
+    import numpy as np
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    cc = importlib.import_module("copycat")
+    prev = np.random.default_rng(0).normal(size=(200, 2))
+    assert cc.r_squared(prev, 2 * prev + 1) == pytest.approx(1.0)
+    noise = np.random.default_rng(1).normal(size=(200, 2))
+    assert abs(cc.r_squared(prev, noise)) < 0.05
+    from pomil.data import Demonstrations
+
+    demos = Demonstrations.load(ROOT / "data" / "hopper-paper.npz")
+    p, c = cc.demo_pairs(demos)
+    assert len(p) == len(c) == demos.num_steps - demos.num_episodes
+    assert np.array_equal(p[0], demos.actions[0]) and np.array_equal(c[0], demos.actions[1])
+    assert cc.main(["--demos", str(ROOT / "data" / "circles.npz"), "x.pt"]) == 2  # circles: no tasks
+    assert "metadata has no tasks" in capsys.readouterr().err
