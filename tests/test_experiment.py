@@ -82,8 +82,9 @@ def test_summary_success_counts_and_table_come_from_the_runs():
     assert row["summary"]["min_purity"] == [0.75, 0.25] and row["summary"]["nmi"] == [0.6, 0.4]
     table = results_table(data)
     assert "| case | modes |" in table
-    assert "| x | 2 | 1/2 | 0.75 ± 0.25 | 0.75 ± 0.25 | 1.5 ± 0.5 | 0.60 ± 0.40 | 0.25 ± 0.25 | 0.00 ± 0.00 | - | - | 20 |" \
-        in table  # coverage from the modes' shares; episode purity and switching were not measured
+    # coverage from the modes' shares; episode purity and switching were not measured
+    assert ("| x | 2 | 1/2 | 0.75 ± 0.25 | 0.75 ± 0.25 | 1.5 ± 0.5 | 0.60 ± 0.40 | 0.25 ± 0.25 | 0.00 ± 0.00 | - | - "
+            "| 20 |") in table
     assert "mean ± std over 2 seed(s) (0, 1); 10 stochastic rollouts per code" in table
     # free-sampling figures, "-" for a row measured before them
     data["rows"]["y"] = {"learner": "diffusion", "kind": "circles", "wall_s": [5.0, 7.0],
