@@ -162,6 +162,21 @@ def test_same_seed_same_run_and_resume_is_exact(demos_path, tmp_path):
     assert any(not torch.equal(v, pf["nets"]["policy"][k]) for k, v in pf["policy"].items())
 
 
+def test_the_run_length_follows_the_demonstrations(demos_path, tmp_path):
+    """iterations auto: 75 passes over the demonstrations' steps, at least 4000 (two circles: 4000; the paper's
+    Hopper: 15,000); a count given is kept; config.json records the count run."""
+    import json
+
+    from pomil.algos.diffusion import sized_for_steps
+
+    cfg = DiffusionConfig()
+    assert [sized_for_steps(cfg, n).iterations for n in (13_200, 51_200, 8_000)] == [4000, 15_000, 4000]
+    assert sized_for_steps(DiffusionConfig(iterations=7), 51_200).iterations == 7
+    assert sized_for_steps(DiffusionConfig(epochs=1.0, min_iterations=3), 600).iterations == 3
+    train_diffusion(_cfg(demos_path, tmp_path / "d", epochs=0.5, min_iterations=2))  # 200 episodes x 33 steps
+    assert json.loads((tmp_path / "d" / "config.json").read_text())["iterations"] == math.ceil(0.5 * 6600 / 64)
+
+
 def test_schedules():
     cfg = DiffusionConfig(iterations=1000, lr_warmup=100)
     assert lr_factor(cfg, 50) == 0.5 and lr_factor(cfg, 100) == 1.0 and lr_factor(cfg, 1000) == pytest.approx(0.0)

@@ -62,10 +62,12 @@ def test_rates_are_assigned_to_the_nearest_task_or_to_standing():
     # expert rates: forward +0.02 per step, backward -0.01, standing 0
     assert task_of_rates(np.array([0.03, 0.012, 0.011, 0.009, -0.004, -0.006, -0.5]), ref).tolist() == \
         [0, 0, 0, -1, -1, 1, 1]
-    roll = {"displacement": np.array([2.0, -1.0, 0.0, 2.0]), "length": np.array([100, 100, 100, 100]),
-            "segment_rates": np.array([[0.02] * 3, [-0.01] * 3, [0.0] * 3, [0.02, -0.01, 0.02]])}
+    assert task_of_rates(np.array([0.009, 0.006, -0.004]), ref, standing=False).tolist() == [0, 0, 1]
+    # a forward episode that starts slowly (its first third nearer standing) is still pure; a standing one never
+    roll = {"displacement": np.array([2.0, -1.0, 0.0, 2.0, 1.5]), "length": np.array([100] * 5),
+            "segment_rates": np.array([[0.02] * 3, [-0.01] * 3, [0.0] * 3, [0.02, -0.01, 0.02], [0.006, 0.02, 0.02]])}
     free = free_sampling(roll, ref)
-    assert free["mode_share"] == {"forward": 0.5, "backward": 0.25} and free["still_share"] == 0.25
-    p = np.array([2 / 3, 1 / 3])
+    assert free["mode_share"] == {"forward": 0.6, "backward": 0.2} and free["still_share"] == 0.2
+    p = np.array([3 / 4, 1 / 4])
     assert free["coverage"] == pytest.approx(-(p * np.log(p)).sum() / np.log(2))
-    assert (free["episode_purity"], free["switch_share"]) == (0.5, 0.25)
+    assert (free["episode_purity"], free["switch_share"]) == (0.6, 0.2)

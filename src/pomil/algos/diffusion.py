@@ -60,7 +60,10 @@ class DiffusionConfig(RunConfig):
     inference_steps: int = option(10, "DDIM steps per sampled plan", within="[1, inf)")
     beta_schedule: Literal["squaredcos_cap_v2", "linear", "scaled_linear"] = option(
         "squaredcos_cap_v2", "the noise schedule (diffusers' names; squaredcos_cap_v2: the cosine schedule)")
-    iterations: int = option(4000, "gradient steps", within="[1, inf)")
+    iterations: int = option(0, "gradient steps (auto: epochs passes over the demonstrations' steps, at least "
+                                "min_iterations)", within="[0, inf)", named={"auto": 0})
+    epochs: float = option(75.0, "with iterations auto: passes over the demonstrations' steps", within="(0, inf)")
+    min_iterations: int = option(4000, "with iterations auto: at least this many gradient steps", within="[1, inf)")
     batch_size: int = option(256, "(episode, step) places per gradient step", within="[1, inf)")
     lr: float = option(1e-3, "AdamW learning rate at its peak (linear warm-up, then cosine decay to 0)",
                        within="(0, inf)")
@@ -85,6 +88,15 @@ class DiffusionConfig(RunConfig):
                              f"({self.train_timesteps}), got {self.inference_steps}")
         if self.codes_from and self.conditioning != "codes":
             raise PomilError("config key 'codes_from': only with conditioning codes (learner diffusion-codes)")
+
+
+def sized_for_steps(cfg: DiffusionConfig, steps: int) -> DiffusionConfig:
+    """``cfg`` with ``iterations`` auto made a count: ``epochs`` passes over ``steps`` demonstration steps in batches
+    of ``batch_size``, at least ``min_iterations`` (two circles' 13,200 steps: 4000; the paper's Hopper, 51,200:
+    15,000)."""
+    if cfg.iterations:
+        return cfg
+    return replace(cfg, iterations=max(cfg.min_iterations, math.ceil(cfg.epochs * steps / cfg.batch_size)))
 
 
 def lr_factor(cfg: DiffusionConfig, step: int) -> float:
@@ -184,11 +196,12 @@ def train_diffusion(config: DiffusionConfig, resume: bool = False) -> Path:
     if not config.demos:
         raise PomilError("diffusion: --demos is required (a demonstrations .npz file)")
     hints = {"diffusion": lr_hint(config, "lr"), "policy": lr_hint(config, "lr")}
+    demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs),
+                                                    parse_mask(config.observation_mask),
+                                                    per_mode_episodes=config.demos_per_mode, seed=config.seed)
+    config = sized_for_steps(config, int(demos.episode_lengths.sum()))
     with RunLoop(config, algo="diffusion" + ("-codes" if config.conditioning == "codes" else ""), resume=resume,
                  hints=hints) as loop:
-        demos, env_id, env_kwargs = load_training_demos(config.demos, parse_kwargs(config.env_kwargs),
-                                                        parse_mask(config.observation_mask),
-                                                        per_mode_episodes=config.demos_per_mode, seed=config.seed)
         codes, num_codes, record = None, 0, {}
         if config.conditioning == "codes":
             source = warm_start_codes(config, loop.dir, resume)

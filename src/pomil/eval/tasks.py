@@ -75,28 +75,31 @@ def rollout_locomotion(policy: TrainedPolicy, env_kwargs: dict[str, Any], episod
         env.close()
 
 
-def task_of_rates(rates: np.ndarray, reference: dict[str, Any]) -> np.ndarray:
+def task_of_rates(rates: np.ndarray, reference: dict[str, Any], *, standing: bool = True) -> np.ndarray:
     """The task each rate (displacement per step, any shape) looks like: the index of the task whose expert's
     signed rate (its displacement in the task's direction over its episode's ``max_episode_steps``, 1000 when
-    unset) is nearest; -1 where standing still (rate 0) is nearer than every task."""
+    unset) is nearest; with ``standing``, -1 where standing still (rate 0) is nearer than every task."""
     tasks = list(reference["tasks"])
-    targets = np.array([0.0] + [np.sign(reference["tasks"][t].get("forward_reward_weight", 1.0))
-                                * float(reference["expert_displacement"][t])
-                                / float(reference["tasks"][t].get("max_episode_steps", 1000)) for t in tasks])
+    targets = np.array([0.0] * standing + [np.sign(reference["tasks"][t].get("forward_reward_weight", 1.0))
+                                           * float(reference["expert_displacement"][t])
+                                           / float(reference["tasks"][t].get("max_episode_steps", 1000))
+                                           for t in tasks])
     nearest = np.abs(np.asarray(rates)[..., None] - targets).argmin(-1)
-    return nearest - 1
+    return nearest - int(standing)
 
 
 def free_sampling(roll: dict[str, np.ndarray], reference: dict[str, Any]) -> dict[str, Any]:
     """What a user who samples freely (the codes drawn evenly) sees on one task's rollouts, which share the
-    dynamics of every task: each episode's task by its mean rate (:func:`task_of_rates`), their shares and
-    ``coverage`` (entropy over log J), and whether an episode keeps to one task (``episode_purity``,
-    ``switch_share``: each third of it classified alone)."""
+    dynamics of every task: each episode's task by its mean rate, or standing (:func:`task_of_rates`), their
+    shares and ``coverage`` (entropy over log J), and whether a moving episode keeps to one task
+    (``episode_purity``, ``switch_share``: each third of it assigned alone to the nearest task; a third may start
+    slowly from rest, so only the whole episode is ever called standing, and a standing episode is never pure)."""
     tasks = list(reference["tasks"])
     modes = task_of_rates(roll["displacement"] / np.maximum(roll["length"], 1), reference)
+    thirds = np.where(modes[:, None] >= 0, task_of_rates(roll["segment_rates"], reference, standing=False), -1)
     return {"mode_share": {t: float((modes == j).mean()) for j, t in enumerate(tasks)},
             "still_share": float((modes == -1).mean()), "coverage": coverage(modes, len(tasks)),
-            **episode_purity(task_of_rates(roll["segment_rates"], reference))}
+            **episode_purity(thirds)}
 
 
 def task_scores(returns: np.ndarray, displacement: np.ndarray, reference: dict[str, Any],
