@@ -52,13 +52,15 @@ def test_denoising_loss_is_the_noise_error():
     steps = torch.randint(0, 10, (3,), generator=drawn)
 
     policy.forward = lambda noisy, k, cond: torch.zeros_like(noisy)
-    loss, stats = denoising_loss(policy, ddpm, windows, actions, None, torch.Generator().manual_seed(3))
+    loss, stats = denoising_loss(policy, ddpm, windows, actions=actions, codes=None,
+                                   generator=torch.Generator().manual_seed(3))
     assert loss.item() == pytest.approx(noise.pow(2).mean().item(), rel=1e-6) and stats["diffusion/loss"] == loss.item()
 
     abar = ddpm.alphas_cumprod[steps].view(-1, 1, 1)
     clean = policy.scale(actions, "act")
     policy.forward = lambda noisy, k, cond: (noisy - abar.sqrt() * clean) / (1 - abar).sqrt()
-    loss, _ = denoising_loss(policy, ddpm, windows, actions, None, torch.Generator().manual_seed(3))
+    loss, _ = denoising_loss(policy, ddpm, windows, actions=actions, codes=None,
+                                   generator=torch.Generator().manual_seed(3))
     assert loss.item() < 1e-10
 
 
@@ -233,8 +235,8 @@ def test_codes_come_from_the_mixture_warm_start(demos_path, tmp_path, monkeypatc
     assert runs == [str(tmp_path / "dc" / "warm-start")]
     record = load_checkpoint(ckpt)["record"]
     demos = Demonstrations.load(demos_path)
-    codes, k = episode_codes(tmp_path / "dc" / "warm-start" / "checkpoint.pt", demos, "pomil/Circles-v0",
-                             demos.metadata["env_kwargs"], torch.device("cpu"))
+    codes, k = episode_codes(tmp_path / "dc" / "warm-start" / "checkpoint.pt", demos, env_id="pomil/Circles-v0",
+                             env_kwargs=demos.metadata["env_kwargs"], device=torch.device("cpu"))
     assert k == 2 and record["code_shares"] == [round(float((codes == c).float().mean()), 4) for c in range(2)]
     assert 0.0 <= record["codes_nmi_with_labels"] <= 1.0
     tp = TrainedPolicy.load(ckpt)

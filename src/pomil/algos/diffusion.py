@@ -138,7 +138,7 @@ class Places:
         return (data.observations[self.obs_steps[idx], e[:, None]], data.actions[self.act_steps[idx], e[:, None]], e)
 
 
-def denoising_loss(policy: DiffusionPolicy, scheduler, windows: torch.Tensor, actions: torch.Tensor,
+def denoising_loss(policy: DiffusionPolicy, scheduler, windows: torch.Tensor, *, actions: torch.Tensor,
                    codes: torch.Tensor | None, generator: torch.Generator) -> tuple[torch.Tensor, dict[str, float]]:
     """DDPM's simplified loss: the mean squared error of the predicted noise, at diffusion steps drawn
     uniformly from [0, train_timesteps); returns (loss, stats)."""
@@ -170,7 +170,7 @@ def warm_start_codes(cfg: DiffusionConfig, run_dir: Path, resume: bool) -> Path:
     return train_adversarial(warm)
 
 
-def episode_codes(ckpt: Path, demos: Demonstrations, env_id: str, env_kwargs: dict, device: torch.device
+def episode_codes(ckpt: Path, demos: Demonstrations, *, env_id: str, env_kwargs: dict, device: torch.device
                   ) -> tuple[torch.Tensor, int]:
     """Each demonstration episode's most likely code under the policy of ``ckpt`` (E,), and K."""
     from pomil.algos.warm_start import most_likely_codes
@@ -205,7 +205,7 @@ def train_diffusion(config: DiffusionConfig, resume: bool = False) -> Path:
         codes, num_codes, record = None, 0, {}
         if config.conditioning == "codes":
             source = warm_start_codes(config, loop.dir, resume)
-            codes, num_codes = episode_codes(source, demos, env_id, env_kwargs, loop.device)
+            codes, num_codes = episode_codes(source, demos, env_id=env_id, env_kwargs=env_kwargs, device=loop.device)
             shares = np.bincount(codes.numpy(), minlength=num_codes) / len(codes)
             record = {"codes_from": str(source), "code_shares": shares.round(4).tolist()}
             if demos.labels is not None:
@@ -235,8 +235,8 @@ def train_diffusion(config: DiffusionConfig, resume: bool = False) -> Path:
                 group["lr"] = config.lr * lr_factor(config, iteration)
             idx = torch.randint(0, len(places.episodes), (config.batch_size,), generator=generator)
             windows, actions, episodes = places.batch(data, idx.to(data.mask.device))
-            loss, stats = denoising_loss(policy, scheduler, windows, actions,
-                                         None if one_hot is None else one_hot[episodes], generator)
+            loss, stats = denoising_loss(policy, scheduler, windows, actions=actions,
+                                         codes=None if one_hot is None else one_hot[episodes], generator=generator)
             loop.guard.value(iteration, "diffusion loss (noise MSE)", stats["diffusion/loss"])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
