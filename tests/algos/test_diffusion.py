@@ -248,3 +248,12 @@ def test_codes_come_from_the_mixture_warm_start(demos_path, tmp_path, monkeypatc
     given = train_diffusion(dataclasses.replace(cfg, out=str(tmp_path / "given"),
                                                 codes_from=str(tmp_path / "dc" / "warm-start" / "checkpoint.pt")))
     assert len(runs) == 1 and load_checkpoint(given)["record"]["code_shares"] == record["code_shares"]
+
+
+def test_without_the_extra_a_run_says_which_to_install_and_writes_nothing(demos_path, tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "diffusers", None)  # an import of it fails
+    with pytest.raises(PomilError, match=r"need the optional extra diffusers: pip install 'pomil\[diffusion\]'"):
+        train_diffusion(_cfg(demos_path, tmp_path / "d", iterations=2))
+    assert not (tmp_path / "d").exists()
