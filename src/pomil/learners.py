@@ -96,10 +96,10 @@ LEARNERS: dict[str, Learner] = {learner.name: learner for learner in (
     _ablation("igp-no-bc", "ablation: InfoGAIL-POMDP without the BC term in the policy loss", bc_weight=0.0),
     Learner("diffusion", "Diffusion Policy (peer): a denoiser over action horizons from recent observations, "
                          "DDIM sampling, receding horizon; no codes (optional extra pomil[diffusion])",
-            "pomil.algos.diffusion", "DiffusionConfig", "train_diffusion", {"conditioning": "none"}, cost=0.25),
+            "pomil.algos.diffusion", "DiffusionConfig", "train_diffusion", {"conditioning": "none"}, cost=0.75),
     Learner("diffusion-codes", "Diffusion Policy conditioned on the codes InfoGAIL-POMDP's mixture warm start assigns "
                                "to the demonstration episodes, without labels (optional extra pomil[diffusion])",
-            "pomil.algos.diffusion", "DiffusionConfig", "train_diffusion", {"conditioning": "codes"}, cost=0.5),
+            "pomil.algos.diffusion", "DiffusionConfig", "train_diffusion", {"conditioning": "codes"}, cost=0.95),
 )}
 """Every learner by name."""
 
