@@ -156,18 +156,16 @@ def warm_start_codes(cfg: DiffusionConfig, run_dir: Path, resume: bool) -> Path:
     if cfg.codes_from:
         return Path(cfg.codes_from)
     from pomil.algos.adversarial import AdversarialConfig, train_adversarial
-    from pomil.config import resolved
 
     out = run_dir / "warm-start"
     if resume and (out / "checkpoint.pt").exists():
         return out / "checkpoint.pt"
     print(f"pomil: diffusion-codes: the codes come from InfoGAIL-POMDP's mixture warm start, run into {out}",
           file=sys.stderr)
-    warm = resolved(AdversarialConfig(learner="infogail-pomdp", demos=cfg.demos, env_kwargs=cfg.env_kwargs,
-                                      observation_mask=cfg.observation_mask, demos_per_mode=cfg.demos_per_mode,
-                                      seed=cfg.seed, iterations=0, eval_every=0, out=str(out), overwrite=True,
-                                      device=cfg.device, progress=cfg.progress))
-    return train_adversarial(warm)
+    return train_adversarial(AdversarialConfig(  # its preset auto is resolved from the demonstrations there
+        learner="infogail-pomdp", demos=cfg.demos, env_kwargs=cfg.env_kwargs, observation_mask=cfg.observation_mask,
+        demos_per_mode=cfg.demos_per_mode, seed=cfg.seed, iterations=0, eval_every=0, out=str(out), overwrite=True,
+        device=cfg.device, progress=cfg.progress))
 
 
 def episode_codes(ckpt: Path, demos: Demonstrations, *, env_id: str, env_kwargs: dict, device: torch.device
