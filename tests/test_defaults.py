@@ -37,7 +37,7 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
         assert (p.warm_start_iterations, p.warm_start_lr, p.warm_start_lr_decay, p.warm_start_lr_warmup,
                 p.warm_start_log_std_lr_scale, p.warm_start_fit_log_std) == warm_start, name
     assert cfg.mixture_balance == "dataset"
-    assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 30, "auto")
+    assert (cfg.num_envs, cfg.iterations, cfg.preset) == (256, 15, "auto")
     # the circles experiment adds only the run's own fields to the defaults (auto: the circles' default preset)
     spec = load_spec("circles")
     row = next(r for r in spec.rows if r.learner == "infogail-pomdp")
@@ -109,8 +109,7 @@ def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(
     assert (std.policy_obs_delta, std.policy_prev_action, std.iterations) == (True, False, 15)
     assert (std.warm_start_iterations, std.warm_start_lr, std.warm_start_lr_decay, std.warm_start_log_std_lr_scale,
             std.warm_start_fit_log_std) == (600, 3e-3, True, 10.0, True)
-    assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True,
-                               iterations=30) == \
+    assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True) == \
         at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "fast-warm-start"})
     # the user's values win, also one equal to the field's default; a named preset is taken as named
     mine = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "policy_prev_action": True,
