@@ -56,3 +56,20 @@ def test_copycat_fits_the_previous_action(monkeypatch, tmp_path, capsys):
     assert np.array_equal(p[0], demos.actions[0]) and np.array_equal(c[0], demos.actions[1])
     assert cc.main(["--demos", str(ROOT / "data" / "circles.npz"), "x.pt"]) == 2  # circles: no tasks
     assert "metadata has no tasks" in capsys.readouterr().err
+
+
+def test_reward_check_ranks_a_runs_own_episodes(monkeypatch, capsys):
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    rc = importlib.import_module("reward_check")
+    ckpt = str(ROOT / "tests" / "fixtures" / "checkpoints_v1" / "infogail-pomdp.pt")  # circles, 33-step episodes
+    rows = rc.episode_table(ckpt, None, episodes=12, seed=3)
+    assert [r["code"] for r in rows] == [0, 1] and {r["task"] for r in rows} == {"own"}
+    assert sum(r["episodes"] for r in rows) == 12
+    assert all(r["length"] == 33 for r in rows)  # the circles never end early ...
+    assert all(r["rho_length"] == 0 for r in rows)  # ... so the length ranks nothing
+    assert all(-1 <= r["rho_return"] <= 1 for r in rows)
+    assert all(r["return"] < 0 for r in rows)  # the circles pay minus the distance to the nearest circle
+    assert rc.episode_table(ckpt, None, episodes=12, seed=3) == rows  # same seed, same numbers
+    assert rc.main([str(ROOT / "tests" / "fixtures" / "checkpoints_v1" / "bc.pt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not an adversarial run's checkpoint" in err[0]
