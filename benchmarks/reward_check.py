@@ -1,12 +1,13 @@
 """The reward check: does an adversarial run's learned reward rank its own episodes as the task's reward does?
 
-For each task of the demonstrations (without tasks in their metadata, or without --demos: the run's own environment and
-its reward), the run's last (running) policy collects a batch of stochastic episodes, as in
-training, with the codes drawn at random; the run's own critic and posterior pay them the training reward (the critic
-term standardised over the batch plus lambda1 log P(c | b_t), pomil.algos.adversarial.rewards). Per code, over its
-episodes: the mean environment return, and Spearman's rank correlation of the imitation return (the undiscounted sum
-of that reward) with the task's return and with the episode's length. A reward that ranks the episodes the task's way
-(correlation near 1) gives PPO the direction; one near 0 gives it none, whatever the optimiser.
+For each task of the demonstrations (without tasks in their metadata, or without --demos: the run's own environment
+and its reward), the run's last (running) policy collects a batch of stochastic episodes, as in training, with the
+codes drawn at random; the run's own critic and posterior pay them the training reward (the critic term standardised
+over the batch plus lambda1 log P(c | b_t), pomil.algos.adversarial.rewards). Per code, over its episodes: the mean
+environment return; Spearman's rank correlation of the imitation return (the undiscounted sum of that reward) with
+the task's return and with the episode's length; the mean step reward's two terms. A reward that ranks the episodes
+the task's way (correlation near 1) gives PPO the direction; one near 0 gives it none, whatever the optimiser. Where
+an episode can end early, a code whose mean step reward is negative is paid to end it.
 
 The environment's reward is read here only; no learner sees it.
 
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
 import torch
 
@@ -63,6 +65,7 @@ def episode_table(path: str, tasks: dict | None, episodes: int, seed: int) -> li
                     execute=executed_actions_fn(env_info["id"], kwargs), generator=gen, device="cpu", threads=1,
                     code_kind=cfg.code_kind, code_prior=cfg.code_prior)
                 r, _ = rewards(m, roll, code_idx, cfg=cfg, objective=objective)
+                critic_term, _ = rewards(m, roll, code_idx, cfg=replace(cfg, mi_weight=0.0), objective=objective)
         finally:
             env.close()
         mask = roll.mask.float()
@@ -72,10 +75,13 @@ def episode_table(path: str, tasks: dict | None, episodes: int, seed: int) -> li
             pick = (code_idx == code).numpy()
             if pick.sum() < 3:
                 continue
+            steps = mask[:, pick].sum()
             rows.append({"task": task, "code": code, "episodes": int(pick.sum()),
                          "return": float(returns[pick].mean()), "length": float(lengths[pick].mean()),
                          "rho_return": spearman(imitation[pick], returns[pick]),
-                         "rho_length": spearman(imitation[pick], lengths[pick])})
+                         "rho_length": spearman(imitation[pick], lengths[pick]),
+                         "critic_step": float((critic_term * mask)[:, pick].sum() / steps),
+                         "mi_step": float(((r - critic_term) * mask)[:, pick].sum() / steps)})
     return rows
 
 
@@ -93,12 +99,13 @@ def main(argv: list[str] | None = None) -> int:
         if tasks is not None and (not isinstance(tasks, dict) or not all(isinstance(k, dict) for k in tasks.values())):
             raise PomilError(f"{args.demos}: metadata 'tasks' is not a table of environment keywords")
         print("| checkpoint | task | code | episodes | env return | length | rho(imitation, env return) | "
-              "rho(imitation, length) |")
-        print("|---|---|---|---|---|---|---|---|")
+              "rho(imitation, length) | critic term / step | MI term / step |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         for path in args.checkpoints:
             for row in episode_table(path, tasks, args.episodes, args.seed):
                 print(f"| {path} | {row['task']} | {row['code']} | {row['episodes']} | {row['return']:.0f} | "
-                      f"{row['length']:.0f} | {row['rho_return']:.2f} | {row['rho_length']:.2f} |")
+                      f"{row['length']:.0f} | {row['rho_return']:.2f} | {row['rho_length']:.2f} | "
+                      f"{row['critic_step']:.2f} | {row['mi_step']:.2f} |")
     except PomilError as err:
         print(f"reward_check: error: {err}", file=sys.stderr)
         return 2
