@@ -103,5 +103,6 @@ def test_rows_are_chosen_by_name_and_a_rows_name_chooses_its_grid_rows():
     assert [r.name for r in select_rows(spec, ("infogail-pomdp demos_per_mode=4",))] == [
         "infogail-pomdp demos_per_mode=4"]
     assert len(select_rows(spec, ())) == 28
+    assert len(select_rows(load_spec("hopper-paper-few-demos"), ())) == 15  # 5 learners x N in {1, 4, 11}
     with pytest.raises(PomilError, match=r"--rows: no rows \['igp'\] in .*hopper-few-demos.toml"):
         select_rows(spec, ("igp",))
