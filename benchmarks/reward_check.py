@@ -95,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=7)
     args = parser.parse_args(argv)
     try:
+        if args.episodes < 1:
+            raise PomilError(f"--episodes: expected a positive number of episodes, got {args.episodes}")
         tasks = Demonstrations.load(args.demos).metadata.get("tasks") if args.demos else None
-        if tasks is not None and (not isinstance(tasks, dict) or not all(isinstance(k, dict) for k in tasks.values())):
+        if tasks is not None and (not isinstance(tasks, dict) or not all(isinstance(v, dict) for v in tasks.values())):
             raise PomilError(f"{args.demos}: metadata 'tasks' is not a table of environment keywords")
         print("| checkpoint | task | code | episodes | env return | length | rho(imitation, env return) | "
               "rho(imitation, length) | critic term / step | MI term / step |")

@@ -73,3 +73,5 @@ def test_reward_check_ranks_a_runs_own_episodes(monkeypatch, capsys):
     assert rc.main([str(ROOT / "tests" / "fixtures" / "checkpoints_v1" / "bc.pt")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not an adversarial run's checkpoint" in err[0]
+    assert rc.main([ckpt, "--episodes", "0"]) == 2
+    assert capsys.readouterr().err == "reward_check: error: --episodes: expected a positive number of episodes, got 0\n"
