@@ -75,3 +75,49 @@ def test_reward_check_ranks_a_runs_own_episodes(monkeypatch, capsys):
     assert len(err) == 1 and "not an adversarial run's checkpoint" in err[0]
     assert rc.main([ckpt, "--episodes", "0"]) == 2
     assert capsys.readouterr().err == "reward_check: error: --episodes: expected a positive number of episodes, got 0\n"
+
+
+def test_oracle_reward_pays_each_code_its_tasks_own_reward(monkeypatch):
+    import numpy as np
+    import torch
+
+    from pomil.envs import make_vec_env
+    from pomil.envs.locomotion import hopper_kwargs
+    from pomil.rl.collect import Collected
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    orc = importlib.import_module("oracle_reward")
+    monkeypatch.setattr(orc, "_state", {"x_velocity": []})
+    monkeypatch.setattr(orc._make_vec_env, "original", make_vec_env, raising=False)
+    kw = {"forward": hopper_kwargs("forward", "standard"), "backward": hopper_kwargs("backward", "standard")}
+    paid = orc._make_vec_env("Hopper-v5", kw["forward"], 4, seed=5)
+    own = {task: make_vec_env("Hopper-v5", k, 4, seed=5) for task, k in kw.items()}
+    for env in (paid, *own.values()):
+        env.reset()
+    actions = torch.randn(6, 4, 3, generator=torch.Generator().manual_seed(0)).clamp(-1, 1)
+    steps = [(paid.step(a)[1], {task: env.step(a)[1] for task, env in own.items()}) for a in actions]
+    env_rewards = torch.stack([r for r, _ in steps]).to(torch.float32)
+    codes = torch.tensor([1, 0, 1, 0])  # code 1 moves forward: paid the forward reward
+    mask = torch.ones(6, 4, dtype=torch.bool)
+    recorded = list(orc._state["x_velocity"])
+    vx = torch.as_tensor(np.stack(recorded), dtype=torch.float32)
+
+    def rollout(env, *args, **kwargs):  # the steps above, as collect would return them
+        orc._state["x_velocity"].extend(recorded)
+        return Collected(type("R", (), {"mask": mask})(), None, codes, env_rewards)
+    monkeypatch.setattr(orc._collect, "original", rollout, raising=False)
+    monkeypatch.setitem(orc._state, "sign", torch.tensor([-1.0, 1.0]))
+    orc._collect(paid)
+    expect = torch.stack([torch.where(codes == 1, o["forward"], o["backward"]) for _, o in steps]).to(torch.float32)
+    assert torch.allclose(orc._state["reward"], expect, atol=1e-5)
+    assert float(vx.abs().max()) > 0.01  # the hopper moved: the signed term is tested, not zero
+    r, _ = orc._rewards(None, type("R", (), {"mask": mask})(), codes)
+    assert torch.allclose(r * expect.std(), expect, atol=1e-4)  # scaled, never shifted: falling never pays
+
+    def moving(env, *args, **kwargs):  # code 0 moves backward, code 1 forward
+        orc._state["x_velocity"].extend([np.array([-1.0, 2.0, -1.0, 2.0])] * 6)
+        return Collected(type("R", (), {"mask": mask})(), None, torch.tensor([0, 1, 0, 1]), torch.ones(6, 4))
+    monkeypatch.setattr(orc._collect, "original", moving)
+    monkeypatch.delitem(orc._state, "sign")
+    orc._collect(paid)
+    assert orc._state["sign"].tolist() == [-1.0, 1.0] and orc._state["reward"][0].tolist() == [2.0, 3.0, 2.0, 3.0]
