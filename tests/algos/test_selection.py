@@ -1,4 +1,5 @@
 import csv
+import math
 from dataclasses import replace
 
 import pytest
@@ -84,3 +85,49 @@ def test_a_damaged_selection_state_is_refused(demos_path):
         selection.load_state_dict({"iteration": torch.tensor([1, 2]), "distance": torch.tensor(0.1), "policy": {}})
     selection.load_state_dict({})
     assert selection.policy_state() is None
+
+
+def _first_row(run_dir):
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return next(csv.DictReader(f))
+
+
+def test_restarts_hand_on_the_nearest_warm_start_and_the_first_is_the_runs_own(demos_path, tmp_path):
+    plain = train_adversarial(_cfg(demos_path, tmp_path / "plain", iterations=0))
+    restarted = train_adversarial(_cfg(demos_path, tmp_path / "three", iterations=0, warm_start_restarts=3))
+    row = _first_row(tmp_path / "three")
+    distances = [float(row[f"init/restart_{r}_distance"]) for r in range(3)]
+    assert "init/restart" not in _first_row(tmp_path / "plain")
+    assert distances[0] == pytest.approx(float(_first_row(tmp_path / "plain")["select/distance"]))
+    assert len(set(distances)) == 3  # three initialisations, three policies
+    chosen = int(float(row["init/restart"]))
+    assert chosen == min(range(3), key=lambda r: distances[r])
+    assert float(row["select/distance"]) == pytest.approx(distances[chosen])  # the hand-over measures the chosen one
+    ckpt, own = load_checkpoint(restarted), load_checkpoint(plain)
+    same = all(torch.equal(v, own["nets"]["policy"][k]) for k, v in ckpt["nets"]["policy"].items())
+    assert same == (chosen == 0)
+    for net in ("critic", "value"):  # not restarted: the run's own
+        assert all(torch.equal(v, own["nets"][net][k]) for k, v in ckpt["nets"][net].items())
+
+
+@pytest.mark.parametrize("nearest", [0, 1])
+def test_restarts_leave_the_runs_random_numbers_as_they_were(demos_path, tmp_path, monkeypatch, nearest):
+    """Whichever restart is chosen, the adversarial phase after it draws the run's own random numbers: with the
+    first chosen the run is the plain run's, bit for bit; with another, only what grew from its policy differs."""
+    import pomil.algos.adversarial as adversarial
+
+    class Ranked(PolicySelection):  # restart `nearest` is the nearest, whatever its rollouts measure
+        def __call__(self, policy, iteration):
+            stats = super().__call__(policy, iteration)
+            if iteration == nearest:
+                self.best = {**self.best, "iteration": iteration, "distance": -math.inf,
+                             "policy": {k: v.detach().clone() for k, v in policy.state_dict().items()}}
+            return stats
+
+    plain = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "plain", iterations=2, hand_over="last")))
+    monkeypatch.setattr(adversarial, "PolicySelection", Ranked)
+    cfg = _cfg(demos_path, tmp_path / "two", iterations=2, hand_over="last", warm_start_restarts=2)
+    ckpt = load_checkpoint(train_adversarial(cfg))
+    assert int(float(_first_row(tmp_path / "two")["init/restart"])) == nearest
+    equal = [all(torch.equal(v, plain["nets"][net][k]) for k, v in ckpt["nets"][net].items()) for net in plain["nets"]]
+    assert all(equal) == (nearest == 0)

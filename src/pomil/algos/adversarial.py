@@ -32,6 +32,7 @@ codes; Wasserstein).
 from __future__ import annotations
 
 import copy
+import random
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -40,6 +41,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -87,6 +89,7 @@ from pomil.training import (
     native_bfloat16,
     precision_context,
     progress_bar,
+    seed_everything,
 )
 
 # The defaults are the recipe measured best, each choice with its measurement in docs/method.md ("Defaults and
@@ -681,6 +684,67 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
 
 
+@contextmanager
+def _own_random_numbers(seed: int, device: torch.device) -> Iterator[torch.Generator]:
+    """A block on its own random numbers (torch's global RNG, CUDA's on a GPU, NumPy's and Python's, seeded with
+    ``seed``; yields a generator seeded alike): the run's streams resume after it as they were before."""
+    states = random.getstate(), np.random.get_state()
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        try:
+            yield seed_everything(seed)
+        finally:
+            random.setstate(states[0])
+            np.random.set_state(states[1])
+
+
+def restarted_warm_start(m: Modules, run: AdversarialRun, *, num_codes: int, env_info: dict[str, Any],
+                         episode_codes: EpisodeCodes | None, device: torch.device) -> dict[str, float]:
+    """The warm start (:func:`bc_warm_start`) from ``warm_start_restarts`` initialisations, the run's own first
+    (its random numbers, so that one restart is the plain warm start), then fresh modules on seeds drawn from the
+    run's; each restart's deterministic rollouts are measured against the demonstrations as ``hand_over nearest``
+    measures them (:class:`PolicySelection`), and the nearest restart's policy, posterior and episode codes go on
+    in ``m``.  Critic and value stay the run's.  The measures and the choice are logged (``init/restart*``)."""
+    cfg, expert, expert_prev = run.cfg, run.expert, run.expert_prev
+
+    def warm_start(mods: Modules, codes: EpisodeCodes | None, gen: torch.Generator) -> dict[str, float]:
+        return bc_warm_start(mods, expert, expert_prev, num_codes=num_codes, mixture=run.mixture, cfg=cfg, gen=gen,
+                             guard=run.guard, episode_codes=codes)
+
+    stats = warm_start(m, episode_codes, run.gen)
+    if cfg.warm_start_restarts == 1:
+        return stats
+    nearest = PolicySelection(expert, expert_prev, env_info=env_info, learner=cfg.learner)
+    seeds = np.random.SeedSequence([cfg.seed, 1]).generate_state(cfg.warm_start_restarts - 1).tolist()
+    kept, distances = {}, []
+    for r in range(cfg.warm_start_restarts):
+        with _own_random_numbers(seeds[r - 1] if r else cfg.seed, device) as gen:
+            mods, codes = m, episode_codes
+            if r:
+                obs_dim, act_dim = expert.observations.shape[-1], expert.actions.shape[-1]
+                mods, _ = build_modules(cfg, obs_dim, act_dim, num_codes=num_codes, device=device)
+                fit_input_scale(mods.policy.encoder, expert.observations, expert.mask)
+                codes = (EpisodeCodes(expert, num_codes, cfg.code_prior).to(device) if episode_codes is not None
+                         else None)
+                restart_stats = warm_start(mods, codes, gen)
+            distances.append(nearest(mods.policy, r)["select/distance"])
+        print(f"pomil: warm start {r + 1} of {cfg.warm_start_restarts}: distance to the demonstrations "
+              f"{distances[-1]:.4f}", file=sys.stderr)
+        if nearest.best is not None and nearest.best["iteration"] == r and r:
+            kept = {"stats": restart_stats, "posterior": None if mods.posterior is None else
+                    copy.deepcopy(mods.posterior.state_dict()),
+                    "codes": None if codes is None else copy.deepcopy(codes.state_dict())}
+    chosen = int(nearest.best["iteration"]) if nearest.best is not None else 0
+    if chosen:
+        m.policy.load_state_dict(nearest.best["policy"])
+        if m.posterior is not None:
+            m.posterior.load_state_dict(kept["posterior"])
+        if episode_codes is not None:
+            episode_codes.load_state_dict(kept["codes"])
+        stats = kept["stats"]
+    return {**stats, "init/restart": float(chosen),
+            **{f"init/restart_{r}_distance": d for r, d in enumerate(distances)}}
+
+
 POSTERIOR_INIT_PATIENCE = 10
 """Steps in a row under ``posterior_init_tolerance`` that end the posterior's warm start early."""
 
@@ -1027,8 +1091,8 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
                           hand_over=selection.policy_state if selection is not None else None):
             return loop.ckpt_path
         # A checkpoint at iteration 0 is that of a warm start alone (--iterations 0): resuming it goes on from there.
-        init_stats = (bc_warm_start(m, expert, run.expert_prev, num_codes=num_codes, mixture=run.mixture, cfg=cfg,
-                                    gen=gen, guard=run.guard, episode_codes=episode_codes)
+        init_stats = (restarted_warm_start(m, run, num_codes=num_codes, env_info=env_info,
+                                           episode_codes=episode_codes, device=loop.device)
                       if loop.iteration == 0 and not resume and cfg.warm_start_iterations > 0 else {})
         clock = PhaseClock("rollout", "critic", "posterior", "ppo", device=loop.device)
         if selection is not None:

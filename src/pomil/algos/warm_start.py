@@ -71,6 +71,10 @@ class WarmStartOptions:
                                            "windows of this many steps, each from the policy's state at its start as "
                                            "the last whole-set pass left it (truncated backpropagation, batches of "
                                            "warm_start_batch windows; 0: whole episodes)", within="[0, inf)")
+    warm_start_restarts: int = option(1, "warm starts from this many initialisations (the run's seed, then seeds "
+                                         "drawn from it); the one whose deterministic rollouts lie nearest the "
+                                         "demonstrations goes on (the hand_over distance, never the environment's "
+                                         "reward; 1: the run's own only)", within="[1, inf)")
     posterior_init_iterations: int = option(200, "with warm_start_codes mixture: posterior steps on the "
                                                  "demonstrations, each episode labelled with its most likely code",
                                             within="[0, inf)")
