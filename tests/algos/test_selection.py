@@ -131,3 +131,31 @@ def test_restarts_leave_the_runs_random_numbers_as_they_were(demos_path, tmp_pat
     assert int(float(_first_row(tmp_path / "two")["init/restart"])) == nearest
     equal = [all(torch.equal(v, plain["nets"][net][k]) for k, v in ckpt["nets"][net].items()) for net in plain["nets"]]
     assert all(equal) == (nearest == 0)
+
+
+def test_restarts_with_continuous_codes_keep_the_chosen_episode_codes(demos_path, tmp_path, monkeypatch):
+    import pomil.algos.adversarial as adversarial
+
+    kept = []
+
+    class Ranked(PolicySelection):  # the second restart is the nearest; its episode codes are remembered
+        def __call__(self, policy, iteration):
+            stats = super().__call__(policy, iteration)
+            if iteration == 1:
+                self.best = {**self.best, "iteration": 1, "distance": -math.inf,
+                             "policy": {k: v.detach().clone() for k, v in policy.state_dict().items()}}
+            return stats
+
+    original = adversarial.bc_warm_start
+
+    def recorded(mods, *args, episode_codes=None, **kwargs):
+        stats = original(mods, *args, episode_codes=episode_codes, **kwargs)
+        kept.append(episode_codes.codes.detach().clone())
+        return stats
+
+    monkeypatch.setattr(adversarial, "PolicySelection", Ranked)
+    monkeypatch.setattr(adversarial, "bc_warm_start", recorded)
+    ckpt = load_checkpoint(train_adversarial(_cfg(demos_path, tmp_path / "c", iterations=0, code_kind="continuous",
+                                                  warm_start_restarts=2)))
+    assert len(kept) == 2 and not torch.equal(kept[0], kept[1])
+    assert torch.equal(ckpt["nets"]["episode_codes"]["codes"], kept[1])
