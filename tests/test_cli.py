@@ -311,6 +311,27 @@ def test_infogail_pomdp_with_the_policys_input_view_trains_resumes_and_loads(tmp
     assert load_checkpoint(out / "checkpoint.pt")["iteration"] == 2
 
 
+def test_resume_reads_the_runs_own_config_and_refuses_a_changed_one(tmp_path, capsys):
+    """``--resume --out R --iterations N`` needs no other flag: the run's config.json gives the rest, and
+    the resumed run is the run uninterrupted; a flag given that changes the results is still refused."""
+    tiny = [*TINY_ADVERSARIAL, "--seed", "3", "--demos-per-mode", "20", "--demos", str(CIRCLES)]
+    whole, split = tmp_path / "whole", tmp_path / "split"
+    assert main(["train", "infogail-pomdp", *tiny, "--out", str(whole), "--iterations", "2"]) == 0
+    assert main(["train", "infogail-pomdp", *tiny, "--out", str(split)]) == 0
+    assert main(["train", "infogail-pomdp", "--out", str(split), "--iterations", "2", "--resume"]) == 0
+    a, b = load_checkpoint(whole / "checkpoint.pt"), load_checkpoint(split / "checkpoint.pt")
+    assert b["iteration"] == 2 and a["config"] == {**b["config"], "out": str(whole)}
+    assert all(torch.equal(a["policy"][k], b["policy"][k]) for k in a["policy"])
+    capsys.readouterr()
+    assert main(["train", "infogail-pomdp", "--out", str(split), "--iterations", "3", "--seed", "4", "--resume"]) == 2
+    assert capsys.readouterr().err == (f"pomil: error: {split / 'checkpoint.pt'}: cannot resume with a different "
+                                       "config (changed: seed)\n")
+    assert main(["train", "bc", "--out", str(split), "--iterations", "3", "--resume"]) == 2
+    assert capsys.readouterr().err == (f"pomil: error: {split / 'config.json'}: the run there is infogail-pomdp's, "
+                                       "not bc's (resume it with pomil train infogail-pomdp --resume)\n")
+    assert load_checkpoint(split / "checkpoint.pt")["iteration"] == 2
+
+
 def test_cli_smoke_continuous_codes_demos_train_evaluate_plot(tmp_path):
     demos = tmp_path / "r.npz"
     r = pomil("demos", "circles", "--modes", "one", "--radius-range", "3,7", "--episodes", 24, "--out", demos)

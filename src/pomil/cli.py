@@ -56,17 +56,40 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type, fixed: dict[str
             parser.add_argument("--" + old.replace("_", "-"), dest=new, default=None, help=argparse.SUPPRESS)
 
 
-def config_from_args(cls: type, args: argparse.Namespace) -> Any:
-    """Defaults, then the --config file, then flags; unknown keys are an error, and every key of the file
-    is checked, also where a flag overrides it."""
+def config_from_args(cls: type, args: argparse.Namespace, run_resumed: bool = False) -> Any:
+    """Defaults, then (``run_resumed``: a training run's --resume) the run's own config.json, then the --config
+    file, then flags; unknown keys are an error, and every key of the file is checked, also where a flag
+    overrides it."""
     values: dict[str, Any] = load_config_file(args.config) if getattr(args, "config", None) else {}
     if values:
         check_values(cls, values, args.config)
+    if run_resumed:
+        renamed: dict[str, str] = getattr(cls, "RENAMED", {})
+        saved = _resumed_config(cls, args)
+        values = {**{k: v for k, v in saved.items() if k not in {renamed.get(n, n) for n in values}}, **values}
     for f in dataclasses.fields(cls):
         v = getattr(args, f.name, None)
         if v is not None:
             values[f.name] = v
     return from_dict(cls, values, getattr(args, "config", None) or "config")
+
+
+def _resumed_config(cls: type, args: argparse.Namespace) -> dict[str, Any]:
+    """The config a run in --out was started with (its config.json, the keys of ``cls``), so that ``--resume``
+    needs no flag but those it changes; {} where there is no config.json (resume then says what is missing)."""
+    from pomil.config import saved_config
+
+    default_out = next((f.default for f in dataclasses.fields(cls) if f.name == "out"), "")
+    path = Path(getattr(args, "out", None) or default_out) / "config.json"
+    if not path.is_file():
+        return {}
+    saved = load_config_file(path)
+    algo = getattr(args, "algo", None)  # pomil train's subcommand, the name its runs record
+    if algo is not None and saved.get("algo", algo) != algo:
+        raise PomilError(f"{path}: the run there is {saved['algo']}'s, not {algo}'s (resume it with pomil train "
+                         f"{saved['algo']} --resume)")
+    names = {f.name for f in dataclasses.fields(cls)} - {"out", "overwrite"}
+    return {k: v for k, v in saved_config(cls, saved).items() if k in names}
 
 
 @contextmanager
@@ -300,7 +323,7 @@ def cmd_experts(args: argparse.Namespace) -> int:
     from pomil.eval.tasks import rollout_locomotion
     from pomil.training import write_json
 
-    cfg: ExpertConfig = config_from_args(ExpertConfig, args)
+    cfg: ExpertConfig = config_from_args(ExpertConfig, args, run_resumed=args.resume)
     ckpt = train_expert(cfg, resume=args.resume)
     policy = TrainedPolicy.load(ckpt)
     # Deterministic returns in both settings (locomotion tasks) or in the trained one.
@@ -323,7 +346,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from pomil.learners import LEARNERS
 
     learner = LEARNERS[args.algo]
-    ckpt = learner.train(config_from_args(learner.config, args), resume=args.resume)
+    ckpt = learner.train(config_from_args(learner.config, args, run_resumed=args.resume), resume=args.resume)
     print(f"wrote {ckpt}")
     return 0
 
@@ -556,7 +579,9 @@ def _add_training(sub: argparse._SubParsersAction) -> None:
         usage = f"pomil train {name} --demos FILE.npz [--config FILE.json] [options]" if parent is train_sub else None
         p = parent.add_parser(name, help=text, usage=usage)
         add_config_flags(p, cls, fixed=fixed)
-        p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+        p.add_argument("--resume", action="store_true",
+                       help="continue the run in --out from its last checkpoint, with the settings in its config.json "
+                            "(flags need only say what changes, e.g. --iterations)")
         p.set_defaults(func=func)
 
 
