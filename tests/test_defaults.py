@@ -30,7 +30,7 @@ def test_defaults_are_the_recipe_the_reproductions_run(tmp_path):
     # the warm starts of the presets, whole (steps, peak lr, decay, rise, log std's scale, its fit)
     for name, warm_start in (("deep-warm-start", (600, 1e-2, True, 0.2, 10.0, True)),
                              ("fast-warm-start", (600, 3e-3, True, 0.0, 10.0, True)),
-                             ("terminating", (600, 3e-3, True, 0.0, 10.0, True)),
+                             ("terminating", (2400, 3e-3, True, 0.0, 10.0, True)),
                              ("long-warm-start", (3000, 1e-3, False, 0.0, 1.0, False)),
                              ("paper-text", (300, 1e-3, False, 0.0, 1.0, False))):
         p = from_dict(AdversarialConfig, {"preset": name})
@@ -108,8 +108,9 @@ def test_auto_preset_follows_whether_the_demonstrations_episodes_end_on_failure(
     assert std.preset == "terminating"
     assert (std.policy_obs_delta, std.policy_prev_action, std.iterations) == (True, False, 15)
     assert (std.warm_start_iterations, std.warm_start_lr, std.warm_start_lr_decay, std.warm_start_log_std_lr_scale,
-            std.warm_start_fit_log_std) == (600, 3e-3, True, 10.0, True)
-    assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True) == \
+            std.warm_start_fit_log_std) == (2400, 3e-3, True, 10.0, True)
+    assert dataclasses.replace(std, preset="fast-warm-start", policy_obs_delta=False, policy_prev_action=True,
+                               warm_start_iterations=600) == \
         at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "preset": "fast-warm-start"})
     # the user's values win, also one equal to the field's default; a named preset is taken as named
     mine = at_start(AdversarialConfig, {"demos": str(standard_hopper_demos), "policy_prev_action": True,

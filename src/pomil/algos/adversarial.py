@@ -51,6 +51,7 @@ from pomil.algos.warm_start import (
     DEEP_WARM_START,
     FAST_WARM_START,
     LONG_WARM_START,
+    TERMINATING_WARM_START,
     EpisodeCodes,
     MixtureAssignment,
     WarmStartOptions,
@@ -205,7 +206,8 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
                 "otherwise), default (pomil's measured recipe), paper-text (the paper's text), long-warm-start (3000 "
                 "steps at lr 1e-3), fast-warm-start (600 steps at lr 3e-3, the log std at 10x and fitted), "
                 "deep-warm-start (the default's schedule, the log std at 10x and fitted) or terminating (the policy "
-                "sees (z_t, dz_t) without a_{t-1}; the fast warm start); config.json records the one that ran")
+                "sees (z_t, dz_t) without a_{t-1}; the fast warm start over 2400 steps); config.json records the one "
+                "that ran")
     # 15: 30 scored the same on circles (10 seeds), the paper's Hopper and standard Hopper (5 seeds each) at up to
     # twice the wall time (docs/method.md, "How many adversarial iterations").
     iterations: int = option(15, "training iterations (rollout + critic + posterior + PPO); 0: the warm start only",
@@ -274,8 +276,9 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
         "fast-warm-start": FAST_WARM_START,
         "deep-warm-start": DEEP_WARM_START,
         # Episodes that end when the agent fails (standard Hopper): a clone that sees a_{t-1} copies it and falls;
-        # the velocity dz_t and the fast warm start keep it up (docs/hopper.md, "Standard setting").
-        "terminating": {"policy_obs_delta": True, "policy_prev_action": False, **FAST_WARM_START},
+        # the velocity dz_t and the fast warm start keep it up (docs/hopper.md, "Standard setting"), over 2400 steps
+        # (docs/hopper.md, "How long the warm start clones").
+        "terminating": {"policy_obs_delta": True, "policy_prev_action": False, **TERMINATING_WARM_START},
     }
     """Named settings (``preset``): applied under a config file's and the flags' values by ``config.from_dict``;
     ``auto`` is replaced by one of them when training starts (``config.resolved``)."""
