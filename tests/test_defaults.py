@@ -240,3 +240,33 @@ def test_long_episodes_cut_the_episode_counts_to_the_step_caps(capsys):
     assert cloning_window(cfg, 1000, False) == cloning_window(dataclasses.replace(cfg, mixture_balance="batch"),
                                                               1000, True) == 0
     assert sized_for_episodes(cfg, 1000, window=128).warm_start_batch == 64  # 64 windows: 8,192 steps
+
+
+def test_few_demonstrations_cut_the_cloning_batch_to_a_quarter_of_them(capsys):
+    from pomil.algos.warm_start import MIN_CLONING_BATCH, sized_for_demonstrations
+
+    cfg = AdversarialConfig()
+    assert (cfg.warm_start_batch_share, MIN_CLONING_BATCH, cfg.warm_start_batch) == (4, 8, 64)
+    # four standard-Hopper episodes per mode, two modes: 64 windows of 128 steps -> 16 a step
+    four = sized_for_demonstrations(cfg, [1000] * 8, 128)
+    assert four.warm_start_batch == 16 and dataclasses.replace(four, warm_start_batch=64) == cfg
+    assert "64 128-step windows of demonstrations: warm_start_batch 64 -> 16" in capsys.readouterr().err
+    assert sized_for_demonstrations(four, [1000] * 8, 128) == four  # idempotent (as --resume applies it again)
+    # the windows that hold a demonstrated step: a 130-step episode has two, a 128-step one one
+    assert sized_for_demonstrations(cfg, [130] * 20 + [128] * 20, 128).warm_start_batch == 15
+    assert "60 128-step windows" in capsys.readouterr().err
+    # 25 episodes per mode (400 windows) and the shipped sets (circles, the paper's Hopper: 400 whole episodes each)
+    # keep the configured batch
+    assert sized_for_demonstrations(cfg, [1000] * 50, 128) == cfg
+    assert sized_for_demonstrations(cfg, [128] * 400, 0) == cfg
+    assert sized_for_demonstrations(cfg, [33] * 256, 0) == cfg
+    assert capsys.readouterr().err == ""
+    # whole episodes count one each, and the batch never falls below the floor
+    assert sized_for_demonstrations(cfg, [128] * 100, 0).warm_start_batch == 25
+    assert sized_for_demonstrations(cfg, [33] * 2, 0).warm_start_batch == 8
+    assert "2 episodes of demonstrations: warm_start_batch 64 -> 8" in capsys.readouterr().err
+    assert sized_for_demonstrations(dataclasses.replace(cfg, warm_start_batch=4), [33] * 2, 0).warm_start_batch == 4
+    off = dataclasses.replace(cfg, warm_start_batch_share=0)  # the specs whose tables ran the whole batch
+    assert sized_for_demonstrations(off, [1000] * 8, 128) == off
+    assert sized_for_demonstrations(dataclasses.replace(cfg, warm_start_batch_share=2), [1000] * 8,
+                                    128).warm_start_batch == 32

@@ -64,6 +64,7 @@ from pomil.algos.warm_start import (
     first_step_starts,
     mixture_assignment,
     most_likely_codes,
+    sized_for_demonstrations,
     sized_for_episodes,
 )
 from pomil.api import TrainedPolicy
@@ -1036,11 +1037,15 @@ def divergence_hints(cfg: AdversarialConfig) -> dict[str, str]:
             "reward": lr_hint(cfg, *rewards), "warm-start": lr_hint(cfg, "warm_start_lr")}
 
 
-def _environment(cfg: AdversarialConfig, device: torch.device):
-    """(demonstrations, env info, evaluator, batched env, executed-actions function) of a run."""
-    demos, env_id, env_kwargs = load_training_demos(cfg.demos, parse_kwargs(cfg.env_kwargs),
-                                                    parse_mask(cfg.observation_mask),
-                                                    per_mode_episodes=cfg.demos_per_mode, seed=cfg.seed)
+def _training_demos(cfg: AdversarialConfig) -> tuple[Demonstrations, str, dict[str, Any]]:
+    """The run's demonstrations (its mask and draw of episodes per mode applied), env id and keywords."""
+    return load_training_demos(cfg.demos, parse_kwargs(cfg.env_kwargs), parse_mask(cfg.observation_mask),
+                               per_mode_episodes=cfg.demos_per_mode, seed=cfg.seed)
+
+
+def _environment(cfg: AdversarialConfig, demos: Demonstrations, *, env_id: str, env_kwargs: dict[str, Any],
+                 device: torch.device):
+    """(env info, evaluator, batched env, executed-actions function) of a run on ``demos``."""
     env_info = {"id": env_id, "kwargs": env_kwargs, "observation_mask": demos.metadata.get("observation_mask")}
     evaluate = make_evaluator(cfg, env_info, demos)
     try:
@@ -1048,7 +1053,7 @@ def _environment(cfg: AdversarialConfig, device: torch.device):
                            observation_mask=env_info["observation_mask"], seed=cfg.seed, sim=cfg.sim)
     except ValueError as err:
         raise PomilError(f"{cfg.demos}: {err}") from None
-    return demos, env_info, evaluate, env, executed_actions_fn(env_id, env_kwargs)
+    return env_info, evaluate, env, executed_actions_fn(env_id, env_kwargs)
 
 
 def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
@@ -1057,10 +1062,13 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
         raise PomilError(f"{cfg.learner}: --demos is required (a demonstrations .npz file)")
     cfg = resolved(cfg)
     longest = Demonstrations.load(cfg.demos).episode_lengths.max(initial=0)
-    cfg = sized_for_episodes(cfg, longest, window=cloning_window(cfg, longest, uses_mixture(cfg, int(
-        LEARNERS[cfg.learner].codes))))
+    window = cloning_window(cfg, longest, uses_mixture(cfg, int(LEARNERS[cfg.learner].codes)))
+    cfg = sized_for_episodes(cfg, longest, window=window)
+    demos, env_id, env_kwargs = _training_demos(cfg)
+    cfg = sized_for_demonstrations(cfg, demos.episode_lengths, window)
     with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
-        demos, env_info, evaluate, env, execute = _environment(cfg, loop.device)
+        env_info, evaluate, env, execute = _environment(cfg, demos, env_id=env_id, env_kwargs=env_kwargs,
+                                                           device=loop.device)
         choice = None
         if cfg.num_codes == NUM_CODES_AUTO and LEARNERS[cfg.learner].codes:
             choice = (recorded_choice(loop.ckpt_path) if resume else

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -53,7 +53,13 @@ class WarmStartOptions:
                                                 "learning rate of the episodes' own codes, as a multiple of "
                                                 "warm_start_lr", within="(0, inf)")
     warm_start_batch: int = option(64, "episodes per behaviour-cloning warm-start step and BC-term batch (at most "
-                                    "max_batch_steps)", within="[1, inf)")
+                                    "max_batch_steps and warm_start_batch_share's part of the demonstrations)",
+                                   within="[1, inf)")
+    warm_start_batch_share: int = option(4, "a cloning step (warm start, BC term) draws at most 1/N of the "
+                                            "demonstrations' windows or episodes, never fewer than 8: with few "
+                                            "demonstrations a batch of all of them clones forward worse "
+                                            "(pomil docs hopper, \"How much a cloning step draws\"; 0: no cut)",
+                                         within="[0, inf)")
     warm_start_codes: Literal["random", "mixture"] = option("mixture",
                                                          "codes in the warm start: random per episode (InfoGAIL), or "
                                                          "mixture: each code clones its own cluster of episodes "
@@ -454,6 +460,30 @@ def sized_for_episodes(cfg: Any, episode_steps: int, *, window: int = 0) -> Any:
               cut.items()) + " (" + ", ".join(f"{c} {getattr(cfg, c)}" for c in dict.fromkeys(caps.values())) + ")",
               file=sys.stderr)
     return replace(cfg, **cut)
+
+
+MIN_CLONING_BATCH = 8
+"""The fewest windows or episodes a cloning step draws when the demonstrations are few
+(:func:`sized_for_demonstrations`)."""
+
+
+def sized_for_demonstrations(cfg: Any, lengths: Sequence[int], window: int) -> Any:
+    """``cfg`` with ``warm_start_batch`` cut to 1/``warm_start_batch_share`` of the units the cloning batch draws from
+    episodes of ``lengths`` steps (their windows of ``window`` steps, or with ``window`` 0 the whole episodes), never
+    below ``MIN_CLONING_BATCH``, with a note on stderr when it is cut.  A batch of all the demonstrations (four
+    standard-Hopper episodes per mode: 64 windows, 64 a step) clones every step on the same data; a quarter a step
+    clones forward better in half the time (docs/hopper.md, "How much a cloning step draws").  The shipped sets and
+    25 or more standard-Hopper episodes per mode keep the configured batch."""
+    if not cfg.warm_start_batch_share:
+        return cfg
+    units = int(sum(math.ceil(int(n) / window) for n in lengths)) if window else len(lengths)
+    batch = min(cfg.warm_start_batch, max(MIN_CLONING_BATCH, units // cfg.warm_start_batch_share))
+    if batch >= cfg.warm_start_batch:
+        return cfg
+    print(f"pomil: note: {units} {f'{window}-step windows' if window else 'episodes'} of demonstrations: "
+          f"warm_start_batch {cfg.warm_start_batch} -> {batch} (at most 1/{cfg.warm_start_batch_share} of them a "
+          "cloning step)", file=sys.stderr)
+    return replace(cfg, warm_start_batch=batch)
 
 
 def cloning_window(cfg: AdversarialConfig, episode_steps: int, mixture: bool) -> int:
