@@ -57,8 +57,9 @@ class WarmStartOptions:
                                    within="[1, inf)")
     warm_start_batch_share: int = option(4, "a cloning step (warm start, BC term) draws at most 1/N of the "
                                             "demonstrations' windows or episodes, never fewer than 8: with few "
-                                            "demonstrations a batch of all of them clones forward worse "
-                                            "(pomil docs hopper, \"How much a cloning step draws\"; 0: no cut)",
+                                            "demonstrations a batch of all of them overfits them (standard "
+                                            "Hopper: pomil docs hopper, \"How much a cloning step draws\"; 0: no "
+                                            "cut)",
                                          within="[0, inf)")
     warm_start_codes: Literal["random", "mixture"] = option("mixture",
                                                          "codes in the warm start: random per episode (InfoGAIL), or "
