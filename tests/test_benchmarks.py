@@ -121,3 +121,36 @@ def test_oracle_reward_pays_each_code_its_tasks_own_reward(monkeypatch):
     monkeypatch.delitem(orc._state, "sign")
     orc._collect(paid)
     assert orc._state["sign"].tolist() == [-1.0, 1.0] and orc._state["reward"][0].tolist() == [2.0, 3.0, 2.0, 3.0]
+
+
+def test_demo_draws_rebuilds_each_episodes_return(monkeypatch, capsys):
+    import numpy as np
+
+    from pomil.data import Demonstrations
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    dd = importlib.import_module("demo_draws")
+    # one 3-step episode: x velocity 2 then 3 then 3 (the last step reads its own), one step unhealthy (z 0.5)
+    states = np.zeros((3, 11), np.float32)
+    states[:, 0] = [1.2, 1.2, 0.5]
+    states[:, 5] = [9.0, 2.0, 3.0]
+    actions = np.full((3, 3), 0.5, np.float32)
+    task = {"forward_reward_weight": -1.0, "ctrl_cost_weight": 0.01, "terminate_when_unhealthy": False}
+    md = {"env_id": "Hopper-v5", "tasks": {"back": task}, "label_names": ["back"], "expert_returns": {"back": 1.0}}
+    one = Demonstrations(states, actions, np.array([0, 3]), np.zeros(1, np.int64), states, md)
+    ctrl = 0.01 * 3 * 0.25
+    assert dd.episode_returns(one) == pytest.approx([(1 - 2 - ctrl) + (0 - 3 - ctrl) + (0 - 3 - ctrl)])
+    ends = Demonstrations(states, actions, np.array([0, 3]), np.zeros(1, np.int64), states,
+                          {**md, "tasks": {"back": {**task, "terminate_when_unhealthy": True}}})
+    assert dd.episode_returns(ends) == pytest.approx([3 - 8 - 3 * ctrl])  # paid alive on every step it took
+    # the shipped paper-setting file: the rebuilt mean return is the recorded one's within 1% for both tasks
+    paper = Demonstrations.load(ROOT / "data" / "hopper-paper.npz")
+    rebuilt, labels = dd.episode_returns(paper), np.asarray(paper.labels)
+    for m, t in enumerate(paper.metadata["label_names"]):
+        assert rebuilt[labels == m].mean() == pytest.approx(paper.metadata["expert_returns"][t], rel=0.01)
+    assert dd.main([str(ROOT / "data" / "hopper-paper.npz"), "--demos-per-mode", "2", "--seeds", "0", "1"]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert len(table) == 5 and table[3].startswith("| 0 | 128, 128; 0; ") and table[4].startswith("| 1 | ")
+    assert dd.main([str(ROOT / "data" / "circles.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "expected Hopper-v5 demonstrations" in err[0] and "pomil/Circles-v0" in err[0]
