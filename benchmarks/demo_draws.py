@@ -55,39 +55,54 @@ def episode_returns(demos: Demonstrations) -> np.ndarray:
     return out
 
 
+def draw_rows(demos: Demonstrations, rebuilt: np.ndarray, n: int, seeds: list[int], source: str) -> list[str]:
+    """The table's row of each seed: per task the drawn episodes' lengths, how many ended early, their mean
+    normalised return."""
+    md, names = demos.metadata, demos.metadata["label_names"]
+    limits = {t: int(md["tasks"][t].get("max_episode_steps", 1000)) for t in names}
+    bounds = demos.episode_bounds
+    # a drawn episode is found by its length and first observation (Hopper's starts are drawn at random)
+    index = {(int(bounds[e + 1] - bounds[e]), demos.observations[bounds[e]].tobytes()): e
+             for e in range(demos.num_episodes)}
+    if len(index) != demos.num_episodes:
+        raise PomilError(f"{source}: two episodes share their length and first observation")
+    rows = []
+    for seed in seeds:
+        draw, cells = per_mode(demos, n, seed, source), []
+        for m, t in enumerate(names):
+            eps = [index[(int(draw.episode_bounds[j + 1] - draw.episode_bounds[j]),
+                          draw.observations[draw.episode_bounds[j]].tobytes())]
+                   for j in range(draw.num_episodes) if int(draw.labels[j]) == m]
+            lengths = [int(bounds[e + 1] - bounds[e]) for e in eps]
+            early = sum(k < limits[t] for k in lengths)
+            cells.append(f"{', '.join(map(str, lengths))}; {early}; "
+                         f"{rebuilt[eps].mean() / float(md['expert_returns'][t]):.2f}")
+        rows.append(f"| {seed} | " + " | ".join(cells) + " |")
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("demos")
     p.add_argument("--demos-per-mode", type=int, default=4)
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     args = p.parse_args(argv)
+    if args.demos_per_mode < 1:
+        p.error(f"--demos-per-mode: expected a positive number of episodes, got {args.demos_per_mode}")
     try:
         demos = Demonstrations.load(args.demos)
-        md, rebuilt = demos.metadata, episode_returns(demos)
-        names, labels = md["label_names"], np.asarray(demos.labels)
-        expert = {t: float(md["expert_returns"][t]) for t in names}
-        print("whole file, rebuilt / recorded mean return: " + ", ".join(
-            f"{t} {rebuilt[labels == m].mean():.1f} / {expert[t]:.1f}" for m, t in enumerate(names)))
-        limits = {t: int(md["tasks"][t].get("max_episode_steps", 1000)) for t in names}
-        index = {(int(demos.episode_bounds[e + 1] - demos.episode_bounds[e]),
-                  demos.observations[demos.episode_bounds[e]].tobytes()): e for e in range(demos.num_episodes)}
-        print("| seed | " + " | ".join(f"{t}: lengths, ended early, normalised return" for t in names) + " |")
-        print("|---|" + "---|" * len(names))
-        for seed in args.seeds:
-            draw, cells = per_mode(demos, args.demos_per_mode, seed, args.demos), []
-            for m, t in enumerate(names):
-                eps = [index[(int(draw.episode_bounds[j + 1] - draw.episode_bounds[j]),
-                              draw.observations[draw.episode_bounds[j]].tobytes())]
-                       for j in range(draw.num_episodes) if int(draw.labels[j]) == m]
-                lengths = [int(demos.episode_bounds[e + 1] - demos.episode_bounds[e]) for e in eps]
-                early = sum(n < limits[t] for n in lengths)
-                cells.append(f"{', '.join(map(str, lengths))}; {early}; {rebuilt[eps].mean() / expert[t]:.2f}")
-            print(f"| {seed} | " + " | ".join(cells) + " |")
+        rebuilt, names, labels = episode_returns(demos), demos.metadata["label_names"], np.asarray(demos.labels)
+        rows = draw_rows(demos, rebuilt, args.demos_per_mode, args.seeds, args.demos)
     except PomilError as err:
-        print(f"error: {err}", file=sys.stderr)
+        print(f"demo_draws: error: {err}", file=sys.stderr)
         return 2
+    expert = demos.metadata["expert_returns"]
+    print("whole file, rebuilt / recorded mean return: " + ", ".join(
+        f"{t} {rebuilt[labels == m].mean():.1f} / {float(expert[t]):.1f}" for m, t in enumerate(names)))
+    print("| seed | " + " | ".join(f"{t}: lengths, ended early, normalised return" for t in names) + " |")
+    print("|---|" + "---|" * len(names))
+    print("\n".join(rows))
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

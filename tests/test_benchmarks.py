@@ -154,3 +154,9 @@ def test_demo_draws_rebuilds_each_episodes_return(monkeypatch, capsys):
     assert dd.main([str(ROOT / "data" / "circles.npz")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "expected Hopper-v5 demonstrations" in err[0] and "pomil/Circles-v0" in err[0]
+    assert dd.main([str(ROOT / "data" / "hopper-paper.npz"), "--demos-per-mode", "500"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("demo_draws: error: ") and "500 per mode" in err  # nothing printed before
+    with pytest.raises(SystemExit):
+        dd.main([str(ROOT / "data" / "hopper-paper.npz"), "--demos-per-mode", "0"])
+    assert "--demos-per-mode: expected a positive number of episodes, got 0" in capsys.readouterr().err
