@@ -255,14 +255,16 @@ def test_few_demonstrations_cut_the_cloning_batch_to_a_quarter_of_them(capsys):
     # the windows that hold a demonstrated step: a 130-step episode has two, a 128-step one one
     assert sized_for_demonstrations(cfg, [130] * 20 + [128] * 20, 128).warm_start_batch == 15
     assert "60 128-step windows" in capsys.readouterr().err
-    # 25 episodes per mode (400 windows) and the shipped sets (circles, the paper's Hopper: 400 whole episodes each)
-    # keep the configured batch
-    assert sized_for_demonstrations(cfg, [1000] * 50, 128) == cfg
-    assert sized_for_demonstrations(cfg, [128] * 400, 0) == cfg
-    assert sized_for_demonstrations(cfg, [33] * 256, 0) == cfg
+    # sets larger than one batch keep it: 11 (172 windows) or 25 episodes per mode, one window over a batch, and the
+    # shipped sets (circles, the paper's Hopper: 400 whole episodes each) and the test suite's 200 circle episodes
+    for lengths, window in (([1000] * 22, 128), ([1000] * 50, 128), ([1000] * 8 + [1], 128), ([128] * 400, 0),
+                            ([33] * 200, 0), ([33] * 65, 0)):
+        assert sized_for_demonstrations(cfg, lengths, window) == cfg
     assert capsys.readouterr().err == ""
     # whole episodes count one each, and the batch never falls below the floor
-    assert sized_for_demonstrations(cfg, [128] * 100, 0).warm_start_batch == 25
+    assert sized_for_demonstrations(cfg, [128] * 64, 0).warm_start_batch == 16
+    assert sized_for_demonstrations(dataclasses.replace(cfg, warm_start_batch=128), [128] * 100,
+                                    0).warm_start_batch == 25  # the set fits in a batch of 128
     assert sized_for_demonstrations(cfg, [33] * 2, 0).warm_start_batch == 8
     assert "2 episodes of demonstrations: warm_start_batch 64 -> 8" in capsys.readouterr().err
     assert sized_for_demonstrations(dataclasses.replace(cfg, warm_start_batch=4), [33] * 2, 0).warm_start_batch == 4

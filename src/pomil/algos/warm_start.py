@@ -55,11 +55,11 @@ class WarmStartOptions:
     warm_start_batch: int = option(64, "episodes per behaviour-cloning warm-start step and BC-term batch (at most "
                                     "max_batch_steps and warm_start_batch_share's part of the demonstrations)",
                                    within="[1, inf)")
-    warm_start_batch_share: int = option(4, "a cloning step (warm start, BC term) draws at most 1/N of the "
-                                            "demonstrations' windows or episodes, never fewer than 8: with few "
-                                            "demonstrations a batch of all of them overfits them (standard "
-                                            "Hopper: pomil docs hopper, \"How much a cloning step draws\"; 0: no "
-                                            "cut)",
+    warm_start_batch_share: int = option(4, "where all the demonstrations' windows or episodes fit in one "
+                                            "warm_start_batch, a cloning step (warm start, BC term) draws at most "
+                                            "1/N of them, never fewer than 8: a batch of all of them overfits them "
+                                            "(standard Hopper: pomil docs hopper, \"How much a cloning step "
+                                            "draws\"; 0: no cut)",
                                          within="[0, inf)")
     warm_start_codes: Literal["random", "mixture"] = option("mixture",
                                                          "codes in the warm start: random per episode (InfoGAIL), or "
@@ -471,13 +471,14 @@ MIN_CLONING_BATCH = 8
 def sized_for_demonstrations(cfg: Any, lengths: Sequence[int], window: int) -> Any:
     """``cfg`` with ``warm_start_batch`` cut to 1/``warm_start_batch_share`` of the units the cloning batch draws from
     episodes of ``lengths`` steps (their windows of ``window`` steps, or with ``window`` 0 the whole episodes), never
-    below ``MIN_CLONING_BATCH``, with a note on stderr when it is cut.  A batch of all the demonstrations (four
-    standard-Hopper episodes per mode: 64 windows, 64 a step) clones every step on the same data; a quarter a step
-    clones forward better in half the time (docs/hopper.md, "How much a cloning step draws").  The shipped sets and
-    25 or more standard-Hopper episodes per mode keep the configured batch."""
-    if not cfg.warm_start_batch_share:
-        return cfg
+    below ``MIN_CLONING_BATCH``, where all the units fit in one batch; with a note on stderr when it is cut.  A batch
+    of all the demonstrations (four standard-Hopper episodes per mode: 64 windows, 64 a step) clones every step on the
+    same data; a quarter a step clones forward better in half the time.  Eleven per mode (172 windows) clone forward
+    worse at a quarter (43) than at 64, so sets larger than one batch keep it (docs/hopper.md, "How much a cloning
+    step draws"): the shipped sets, and five or more standard-Hopper episodes per mode."""
     units = int(sum(math.ceil(int(n) / window) for n in lengths)) if window else len(lengths)
+    if not cfg.warm_start_batch_share or units > cfg.warm_start_batch:
+        return cfg
     batch = min(cfg.warm_start_batch, max(MIN_CLONING_BATCH, units // cfg.warm_start_batch_share))
     if batch >= cfg.warm_start_batch:
         return cfg
