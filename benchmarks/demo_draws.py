@@ -104,5 +104,6 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(rows))
     return 0
 
+
 if __name__ == "__main__":
     sys.exit(main())
