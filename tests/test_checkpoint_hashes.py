@@ -34,8 +34,6 @@ _spec.loader.exec_module(ch)
 # were recorded and passed CI before the key named threads: CI's 2. The AVX2 AMD entries: recorded at a7ab771 and
 # after it, equal, with torch's default threads (the AVX512 AMD's hashes, but GAIL's).
 
-pytestmark = pytest.mark.usefixtures("torch_default_threads")  # the thread count the hashes were recorded with
-
 RECORDED = {
     "torch 2.13.0+cpu AVX2 / AMD EPYC family 25 model 1 / 2 threads": {
         "circles-infogail-pomdp": "bdf30e403610bb334f2292ba24c6cce04c0262a48ff21fd72f335beabe5424c6",
@@ -95,6 +93,7 @@ for _recorded in (RECORDED, RECORDED_METRICS):
         "torch 2.13.0+cpu AVX512 / Intel(R) Xeon(R) Processor family 6 model 167 / 2 threads"]
 
 
+@pytest.mark.usefixtures("torch_default_threads")  # the thread count the hashes were recorded with
 def test_tiny_runs_give_the_recorded_checkpoints_on_this_machine():
     machine = ch.machine()
     if machine not in RECORDED:

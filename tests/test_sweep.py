@@ -15,7 +15,7 @@ def pomil(*args, cwd=None):
                           timeout=600, cwd=cwd)
 
 
-@pytest.mark.slow  # Ray in the default suite: test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_...
+@pytest.mark.slow  # Ray in the default suite: test_run_jobs_on_ray_submits_the_costliest_first_and_keeps_job_order
 def test_sweep_on_local_ray_reports_failures_and_skips_finished_runs(tmp_path, demos_path):
     config = tmp_path / "sweep.json"
     config.write_text(json.dumps({"learner": "infogail-pomdp", "demos": str(demos_path), "iterations": 2, "num_envs": 8,
@@ -61,18 +61,25 @@ def test_sweep_bad_config_is_one_line(tmp_path, content, grid, text):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.json"]
 
 
+@pytest.mark.slow  # Ray in the default suite: test_run_jobs_on_ray_submits_the_costliest_first_and_keeps_job_order
+@pytest.mark.usefixtures("all_cores")  # Ray starts a dozen processes: on one core they queue behind each other
 def test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_results(tmp_path, demos_path):
     """Seeds in parallel on a local Ray, relative paths included: the same numbers as one after another,
-    and to the last digit those of the local worker processes (one torch thread each, like Ray's)."""
+    and to the last digit those of the local worker processes (one torch thread each, like Ray's).  The three
+    reproductions run at once: Ray's start spends most of its time waiting, not computing."""
     import shutil
 
     shutil.copy(demos_path, tmp_path / "d.npz")
     args = ("reproduce", "circles", "--seeds", 2, "--bc-iterations", 20, "--episodes-per-code", 10,
             "--rows", "bc-mlp",
             "--demos", "d.npz", "--no-progress")
-    for flags, name in ((("--jobs", 1), "seq"), (("--jobs", 2), "local"), (("--ray",), "par")):
-        r = pomil(*args, *flags, "--out", name, "--runs", f"runs-{name}", cwd=tmp_path)
-        assert r.returncode == 0, r.stderr
+    runs = [subprocess.Popen([sys.executable, "-m", "pomil.cli", *map(str, (*args, *flags, "--out", name, "--runs",
+                                                                            f"runs-{name}"))],
+                             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            for flags, name in ((("--jobs", 1), "seq"), (("--jobs", 2), "local"), (("--ray",), "par"))]
+    for run in runs:
+        _, err = run.communicate(timeout=600)
+        assert run.returncode == 0, err
     seq, local, par = (json.loads((tmp_path / name / "metrics.json").read_text())["rows"]["bc-mlp"]["runs"]
                        for name in ("seq", "local", "par"))
     assert [(a["per_code"], a["mean_return"]) for a in local] == [(b["per_code"], b["mean_return"]) for b in par]
@@ -129,7 +136,7 @@ first run to write its checkpoint of iteration 100 is SIGKILLed right after it, 
 iteration it starts from.  The kill point is chosen, not raced for."""
 
 
-@pytest.mark.slow  # Ray in the default suite: test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_...
+@pytest.mark.slow  # Ray in the default suite: test_run_jobs_on_ray_submits_the_costliest_first_and_keeps_job_order
 def test_a_run_whose_worker_is_killed_resumes_from_its_checkpoint_on_retry(tmp_path, demos_path):
     """SIGKILL the Ray worker right after its checkpoint of iteration 100: Ray retries the task, and the retry
     continues from that checkpoint instead of starting over."""
