@@ -66,7 +66,7 @@ def test_sweep_bad_config_is_one_line(tmp_path, content, grid, text):
 def test_reproduce_on_ray_gives_the_sequential_and_the_local_workers_results(tmp_path, demos_path):
     """Seeds in parallel on a local Ray, relative paths included: the same numbers as one after another,
     and to the last digit those of the local worker processes (one torch thread each, like Ray's).  The three
-    reproductions run at once: Ray's start spends most of its time waiting, not computing."""
+    reproductions run at once."""
     import shutil
 
     shutil.copy(demos_path, tmp_path / "d.npz")
