@@ -160,3 +160,55 @@ def test_demo_draws_rebuilds_each_episodes_return(monkeypatch, capsys):
     with pytest.raises(SystemExit):
         dd.main([str(ROOT / "data" / "hopper-paper.npz"), "--demos-per-mode", "0"])
     assert "--demos-per-mode: expected a positive number of episodes, got 0" in capsys.readouterr().err
+
+
+def test_clone_ensemble_averages_its_members_and_aligns_their_codes(monkeypatch, tmp_path, capsys):
+    import json
+
+    import numpy as np
+    import torch
+
+    from pomil import TrainedPolicy
+    from pomil.cli import main as pomil
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    ce = importlib.import_module("clone_ensemble")
+    # codes named the other way round are found from the episodes' assignments alone
+    assert ce.align([np.array([0, 0, 1, 1]), np.array([1, 1, 0, 0]), np.array([0, 1, 1, 1])], 2) == [
+        [0, 1], [1, 0], [0, 1]]
+    ckpt = ROOT / "tests" / "fixtures" / "checkpoints_v1" / "infogail-pomdp.pt"  # circles, 2 codes
+    alone = TrainedPolicy.load(ckpt)
+    obs = torch.randn(4, alone.obs_dim, generator=torch.Generator().manual_seed(0))
+    codes = np.array([0, 1, 0, 1])
+    same = ce.Ensemble([TrainedPolicy.load(ckpt), TrainedPolicy.load(ckpt)], [[0, 1], [0, 1]])
+    same.reset(4, codes, seed=0)
+    alone.reset(4, codes, seed=0)
+    for _ in range(3):  # two copies of one policy act as the policy alone, step after step
+        assert torch.allclose(same.act(obs), torch.as_tensor(alone.act(obs, True)), atol=1e-6)
+    crossed = ce.Ensemble([TrainedPolicy.load(ckpt), TrainedPolicy.load(ckpt)], [[0, 1], [1, 0]])
+    crossed.reset(4, codes, seed=0)
+    alone.reset(4, np.array([0, 0, 0, 0]), seed=0)
+    first = torch.as_tensor(alone.act(obs, True))
+    alone.reset(4, np.array([1, 1, 1, 1]), seed=0)
+    assert torch.allclose(crossed.act(obs), (first + torch.as_tensor(alone.act(obs, True))) / 2, atol=1e-6)
+
+    # end to end on a tiny Hopper clone: two copies of it score as pomil evaluate scores it alone
+    from pomil.data import Demonstrations, per_mode
+
+    demos, run = str(tmp_path / "draw.npz"), str(tmp_path / "run")
+    per_mode(Demonstrations.load(ROOT / "data" / "hopper-paper.npz"), 2, 0, "paper").save(demos)
+    assert pomil(["train", "infogail-pomdp", "--demos", demos, "--iterations", "0", "--warm-start-iterations", "2",
+                  "--posterior-init-iterations", "2", "--eval-every", "0", "--hidden-size", "8", "--no-progress",
+                  "--out", run]) == 0
+    capsys.readouterr()
+    assert pomil(["evaluate", run, "--demos", demos, "--episodes-per-code", "2", "--seed", "3", "--json"]) == 0
+    own = json.loads(capsys.readouterr().out)
+    assert ce.main(["--demos", demos, "--episodes-per-code", "2", "--eval-seed", "3", run, run]) == 0
+    scores = json.loads(capsys.readouterr().out)
+    assert scores["members"] == [run, run] and scores["member_codes"] == [[0, 1], [0, 1]]
+    for task in ("forward", "backward"):
+        assert scores["tasks"][task]["code"] == own["tasks"][task]["code"]
+        assert scores["tasks"][task]["return"] == pytest.approx(own["tasks"][task]["return"], rel=1e-4)
+    assert ce.main(["--demos", str(ROOT / "data" / "circles.npz"), str(ckpt)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("clone_ensemble: error: ") and "no tasks" in err[0]
