@@ -27,14 +27,14 @@ from pomil.envs import executed_actions_fn
 from pomil.errors import InvalidArgument, PomilError
 from pomil.nn.codes import code_vectors, prior_grid
 from pomil.nn.normalize import RunningNorm
-from pomil.nn.policy import GaussianPolicy, PolicyArch
+from pomil.nn.policy import GaussianPolicy, PolicyArch, make_policy
 from pomil.training import load_checkpoint, resolve_device, save_checkpoint
 
 
 def _policy_of(arch: Any) -> Any:
     """The network of a checkpoint's architecture: a Gaussian policy, or a diffusion policy."""
     if isinstance(arch, PolicyArch):
-        return GaussianPolicy(arch)
+        return make_policy(arch)
     from pomil.nn.diffusion import DiffusionPolicy
 
     return DiffusionPolicy(arch)

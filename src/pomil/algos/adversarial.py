@@ -32,7 +32,6 @@ codes; Wasserstein).
 from __future__ import annotations
 
 import copy
-import random
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -56,6 +55,7 @@ from pomil.algos.warm_start import (
     MixtureAssignment,
     WarmStartOptions,
     clone_demonstrations,
+    clone_members,
     clone_with_continuous_codes,
     cloning_window,
     demo_batch,
@@ -64,6 +64,7 @@ from pomil.algos.warm_start import (
     first_step_starts,
     mixture_assignment,
     most_likely_codes,
+    own_random_numbers,
     sized_for_demonstrations,
     sized_for_episodes,
 )
@@ -78,7 +79,7 @@ from pomil.nn import heads
 from pomil.nn.codes import code_log_likelihood, gaussian_params, sample_prior
 from pomil.nn.encoders import OBS_DELTA_HELP, PREV_ACTION_HELP, fit_input_scale
 from pomil.nn.heads import BeliefHead
-from pomil.nn.policy import GaussianPolicy, PolicyArch, shift_actions
+from pomil.nn.policy import EnsemblePolicy, GaussianPolicy, PolicyArch, make_policy, shift_actions
 from pomil.rl.collect import collect
 from pomil.rl.gae import gae
 from pomil.rl.ppo import PPOOptions, masked_mean, normalize, ppo_loss
@@ -91,7 +92,6 @@ from pomil.training import (
     native_bfloat16,
     precision_context,
     progress_bar,
-    seed_everything,
 )
 
 # The defaults are the recipe measured best, each choice with its measurement in docs/method.md ("Defaults and
@@ -160,6 +160,11 @@ class NetworkOptions:
     policy_obs_delta: bool = option(False, "the policy (not critic, value or posterior): " + OBS_DELTA_HELP)
     policy_prev_action: bool = option(True, "the policy's encoder: " + PREV_ACTION_HELP)
     log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
+    policy_members: int = option(1, "policies acting as one (an ensemble): each member has its own encoder and is "
+                                    "cloned in the warm start from its own initialisation and batches, its codes "
+                                    "renamed to agree with the first member's on the demonstrations; the ensemble "
+                                    "acts with the mean of the members' mean actions and one log std, and the "
+                                    "adversarial phase trains it as one policy (1: one policy)", within="[1, inf)")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
 
 @dataclass(frozen=True)
@@ -306,6 +311,14 @@ class AdversarialConfig(PosteriorOptions, CriticOptions, PPOOptions, NetworkOpti
             given = "auto" if self.num_codes == NUM_CODES_AUTO else self.num_codes
             raise ConfigError(f"config key 'num_codes': discrete codes only, got {given} with code_kind continuous "
                               "(its size is code_dim)")
+        if self.policy_members > 1:
+            clash = {"code_kind": self.code_kind != "discrete", "belief": self.belief not in ("separate", "policy"),
+                     "warm_start_restarts": self.warm_start_restarts > 1}
+            for key, bad in clash.items():
+                if bad:
+                    raise ConfigError(f"config key 'policy_members': an ensemble of {self.policy_members} needs "
+                                      "code_kind discrete, belief separate or policy and warm_start_restarts 1, got "
+                                      f"{key} {getattr(self, key)!r}")
         if self.code_kind == "discrete" and (self.code_dim != 1 or self.code_prior != "uniform"):
             key = "code_dim" if self.code_dim != 1 else "code_prior"
             raise ConfigError(f"config key {key!r}: continuous codes only (set code_kind continuous), got "
@@ -528,7 +541,7 @@ def policy_arch(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: i
     enc = cfg.belief_encoder if LEARNERS[cfg.learner].recurrent else "mlp"
     return PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean,
                       cfg.attention_context, cfg.policy_obs_delta, cfg.policy_prev_action, cfg.code_kind,
-                      cfg.code_prior)
+                      cfg.code_prior, cfg.policy_members)
 
 
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, *, num_codes: int,
@@ -536,7 +549,7 @@ def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, *, num_cod
     enc = cfg.belief_encoder if LEARNERS[cfg.learner].recurrent else "mlp"
     ctx = cfg.attention_context
     arch = policy_arch(cfg, obs_dim, act_dim, num_codes)
-    policy = GaussianPolicy(arch).to(device)
+    policy = make_policy(arch).to(device)
     heads_enc = "mlp" if cfg.belief == "policy" else enc
     value = heads.value(obs_dim, act_dim, num_codes, encoder=heads_enc, hidden_size=cfg.hidden_size,
                         context=ctx).to(device)
@@ -676,8 +689,9 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
             codes = episode_codes.codes.detach()
             stats["bc/code_spread"] = codes.std(0).mean().item()
     else:
-        stats = clone_demonstrations(m.policy, expert, expert_prev, num_codes=num_codes, mixture=mixture, cfg=cfg,
-                                     gen=gen, guard=guard)
+        clone = clone_members if isinstance(m.policy, EnsemblePolicy) else clone_demonstrations
+        stats = clone(m.policy, expert, expert_prev, num_codes=num_codes, mixture=mixture, cfg=cfg, gen=gen,
+                      guard=guard)
         if mixture and posterior:
             codes = most_likely_codes(m.policy, expert, expert_prev)
             stats["bc/code_share_min"] = torch.bincount(codes, minlength=num_codes).min().item() / len(codes)
@@ -686,19 +700,6 @@ def bc_warm_start(m: Modules, expert: PaddedEpisodes, expert_prev: torch.Tensor,
     with torch.no_grad():  # the adversarial phase's action noise; a floor below every value leaves them as they are
         m.policy.log_std.clamp_(min=cfg.warm_start_min_log_std)
     return {f"init/{k.replace('/', '_')}": v for k, v in stats.items()}
-
-
-@contextmanager
-def _own_random_numbers(seed: int, device: torch.device) -> Iterator[torch.Generator]:
-    """A block on its own random numbers (torch's global RNG, CUDA's on a GPU, NumPy's and Python's, seeded with
-    ``seed``; yields a generator seeded alike): the run's streams resume after it as they were before."""
-    states = random.getstate(), np.random.get_state()
-    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-        try:
-            yield seed_everything(seed)
-        finally:
-            random.setstate(states[0])
-            np.random.set_state(states[1])
 
 
 def restarted_warm_start(m: Modules, run: AdversarialRun, *, num_codes: int, env_info: dict[str, Any],
@@ -721,7 +722,7 @@ def restarted_warm_start(m: Modules, run: AdversarialRun, *, num_codes: int, env
     seeds = np.random.SeedSequence([cfg.seed, 1]).generate_state(cfg.warm_start_restarts - 1).tolist()
     kept, distances = {}, []
     for r in range(cfg.warm_start_restarts):
-        with _own_random_numbers(seeds[r - 1] if r else cfg.seed, device) as gen:
+        with own_random_numbers(seeds[r - 1] if r else cfg.seed, device) as gen:
             mods, codes = m, episode_codes
             if r:
                 obs_dim, act_dim = expert.observations.shape[-1], expert.actions.shape[-1]
@@ -1129,7 +1130,8 @@ def auto_num_codes(cfg: AdversarialConfig, expert: PaddedEpisodes, execute: Call
     def fit(k: int, train: PaddedEpisodes, train_prev: torch.Tensor) -> GaussianPolicy:
         torch.manual_seed(cfg.seed)  # every K from the same random numbers: fewer differences by chance
         gen = torch.Generator().manual_seed(cfg.seed)
-        policy = GaussianPolicy(policy_arch(cfg, expert.observations.shape[-1], expert.actions.shape[-1], k))
+        arch = policy_arch(cfg, expert.observations.shape[-1], expert.actions.shape[-1], k)
+        policy = GaussianPolicy(replace(arch, members=1))  # K is chosen on one policy's fit
         policy = policy.to(expert.mask.device)
         fit_input_scale(policy.encoder, train.observations, train.mask)
         clone_demonstrations(policy, train, train_prev, num_codes=k, mixture=True, cfg=search_cfg, gen=gen,

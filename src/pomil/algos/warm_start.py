@@ -10,12 +10,16 @@ schedules and loops that the adversarial learners run before their first iterati
 
 from __future__ import annotations
 
+import itertools
 import math
+import random
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -23,8 +27,9 @@ from torch import nn
 from pomil.config import option
 from pomil.data import PaddedEpisodes
 from pomil.nn.codes import sample_prior, spread_as_prior
-from pomil.nn.policy import GaussianPolicy, shift_actions
-from pomil.training import DivergenceGuard, precision_context, progress_bar
+from pomil.nn.encoders import fit_input_scale
+from pomil.nn.policy import EnsemblePolicy, GaussianPolicy, shift_actions
+from pomil.training import DivergenceGuard, precision_context, progress_bar, seed_everything
 
 if TYPE_CHECKING:
     from pomil.algos.adversarial import AdversarialConfig
@@ -560,6 +565,85 @@ def clone_demonstrations(policy: GaussianPolicy, expert: PaddedEpisodes, expert_
     if cfg.warm_start_fit_log_std:
         stats.update(fit_log_std(policy, expert, expert_prev, mixture=mixture))
     return stats
+
+
+def clone_members(policy: EnsemblePolicy, expert: PaddedEpisodes, expert_prev: torch.Tensor, *, num_codes: int,
+                  mixture: bool, cfg: AdversarialConfig, gen: torch.Generator,
+                  guard: DivergenceGuard | None = None) -> dict[str, float]:
+    """The warm start of an ensemble (``policy_members``): each member cloned on its own by
+    :func:`clone_demonstrations`, the first from the run's random numbers (exactly a one-policy run's warm start),
+    every other from its own initialisation and batches (seeds drawn from the run's).  With the codes' mixture,
+    each later member's codes are then renamed to agree with the first member's on the demonstrations
+    (:func:`code_renaming`: the cloning finds the clusters, in an order of its own).  The ensemble's log std is
+    fitted to its mean actions (``warm_start_fit_log_std``), else the members' mean.  Returns the first member's
+    stats, the ensemble's NLL and log std after the fit, and ``bc/member_agreement``: the share of demonstration
+    episodes on which the least agreeing member's most likely code is the first member's."""
+    device, k = expert.mask.device, len(policy.members)
+    stats = clone_demonstrations(policy.members[0], expert, expert_prev, num_codes=num_codes, mixture=mixture,
+                                 cfg=cfg, gen=gen, guard=guard, where=f"member 1 of {k}: ")
+    seeds = np.random.SeedSequence([cfg.seed, 2]).generate_state(k - 1).tolist()
+    for i, member in enumerate(policy.members[1:], start=1):
+        with own_random_numbers(seeds[i - 1], device) as member_gen:
+            member.load_state_dict(GaussianPolicy(member.arch).to(device).state_dict())  # its own initialisation
+            fit_input_scale(member.encoder, expert.observations, expert.mask)
+            clone_demonstrations(member, expert, expert_prev, num_codes=num_codes, mixture=mixture, cfg=cfg,
+                                 gen=member_gen, guard=guard, where=f"member {i + 1} of {k}: ")
+    if mixture and num_codes > 1:
+        with torch.no_grad():
+            first = most_likely_codes(policy.members[0], expert, expert_prev)
+            agreement = 1.0
+            for member in policy.members[1:]:
+                codes = most_likely_codes(member, expert, expert_prev)
+                renaming = code_renaming(first, codes, num_codes)
+                rename_codes(member, renaming)
+                agreement = min(agreement, (renaming.to(codes.device)[codes] == first).float().mean().item())
+        stats["bc/member_agreement"] = agreement
+    with torch.no_grad():
+        if cfg.warm_start_fit_log_std:
+            stats.update(fit_log_std(policy, expert, expert_prev, mixture=mixture))
+        else:
+            policy.log_std.copy_(torch.stack([p.log_std for p in policy.members]).mean(0))
+            stats["bc/log_std"] = policy.log_std.mean().item()
+    return stats
+
+
+def code_renaming(reference: torch.Tensor, codes: torch.Tensor, num_codes: int) -> torch.Tensor:
+    """The renaming (K,) of ``codes``' names, code j to ``renaming[j]``, under which the most episodes take the
+    code ``reference`` gives them (both (E,) code indices of the same episodes): every renaming up to 7 codes (the
+    first best in lexicographic order), else greedily by the largest count left."""
+    counts = torch.zeros(num_codes, num_codes, dtype=torch.long)
+    counts.index_put_((codes.cpu(), reference.cpu()), torch.ones(len(codes), dtype=torch.long), accumulate=True)
+    if num_codes <= 7:
+        best = max(itertools.permutations(range(num_codes)),
+                   key=lambda p: sum(int(counts[j, p[j]]) for j in range(num_codes)))
+        return torch.tensor(best)
+    renaming, left = torch.full((num_codes,), -1), counts.clone()
+    for _ in range(num_codes):
+        j, i = divmod(int(left.argmax()), num_codes)
+        renaming[j] = i
+        left[j, :], left[:, i] = -1, -1
+    return renaming
+
+
+@torch.no_grad()
+def rename_codes(policy: GaussianPolicy, renaming: torch.Tensor) -> None:
+    """Rename a one-hot-code policy's codes in place: what code j did, code ``renaming[j]`` does."""
+    assert policy.code_embed is not None
+    weight = policy.code_embed.weight.clone()  # (features, K): column k is code k's embedding
+    policy.code_embed.weight[:, renaming.to(weight.device)] = weight
+
+
+@contextmanager
+def own_random_numbers(seed: int, device: torch.device) -> Iterator[torch.Generator]:
+    """A block on its own random numbers (torch's global RNG, CUDA's on a GPU, NumPy's and Python's, seeded with
+    ``seed``; yields a generator seeded alike): the run's streams resume after it as they were before."""
+    states = random.getstate(), np.random.get_state()
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        try:
+            yield seed_everything(seed)
+        finally:
+            random.setstate(states[0])
+            np.random.set_state(states[1])
 
 
 def cloning_steps(policy: GaussianPolicy, step: Callable[[], dict[str, float]], *, after: Callable[[int], None],

@@ -266,12 +266,49 @@ class InputView(nn.Module):
         return feats, torch.cat([inner_h, obs[-1] if self.obs_delta else last], dim=-1)
 
 
+class EnsembleEncoder(nn.Module):
+    """Several encoders side by side over the same inputs: their features and states concatenated on the last
+    dimension, each encoder carrying its own part of the state (:class:`pomil.nn.policy.EnsemblePolicy`).
+
+    It holds the encoders without registering them: they are registered where they belong (each member policy
+    of the ensemble), so that a state dict names each weight once."""
+
+    def __init__(self, encoders: list[nn.Module]) -> None:
+        super().__init__()
+        self._parts = tuple(encoders)  # a tuple: not a submodule
+        self.out_size = sum(e.out_size for e in encoders)
+        self.feature_sizes = [e.out_size for e in encoders]
+        self.state_sizes = [e.initial_state(1).shape[-1] for e in encoders]
+
+    @property
+    def parts(self) -> tuple[nn.Module, ...]:
+        return self._parts
+
+    def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
+        return torch.cat([e.initial_state(batch, device) for e in self._parts], dim=-1)
+
+    def _each(self, method: str, obs, prev, h, start) -> tuple[torch.Tensor, torch.Tensor]:
+        outs = [getattr(e, method)(obs, prev, part, start)
+                for e, part in zip(self._parts, h.split(self.state_sizes, dim=-1), strict=True)]
+        return torch.cat([f for f, _ in outs], dim=-1), torch.cat([s for _, s in outs], dim=-1)
+
+    def step(self, obs, prev_action, h, start):
+        return self._each("step", obs, prev_action, h, start)
+
+    def unroll(self, obs, prev_actions, h0, starts):
+        return self._each("unroll", obs, prev_actions, h0, starts)
+
+
 @torch.no_grad()
 def fit_input_scale(encoder: nn.Module, observations: torch.Tensor, mask: torch.Tensor) -> None:
     """With an ``obs_delta`` :class:`InputView`, set ``delta_scale`` to 1 / the std of the
     demonstrations' step-to-step observation changes (time-major (T, E, D) episodes from their
     first step, ``mask`` (T, E)), so that the change is about as large as the observation;
-    any other encoder is left as it is."""
+    an :class:`EnsembleEncoder`'s encoders each; any other encoder is left as it is."""
+    if isinstance(encoder, EnsembleEncoder):
+        for part in encoder.parts:
+            fit_input_scale(part, observations, mask)
+        return
     if not (isinstance(encoder, InputView) and encoder.obs_delta):
         return
     both = mask[1:] & mask[:-1]

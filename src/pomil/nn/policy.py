@@ -4,11 +4,12 @@ The code c (one-hot, K codes; or a continuous c in R^d, see ``pomil.nn.codes``)
 is embedded linearly and added to the encoder's features, as in the paper's
 code.  The log standard deviation is a learned state-independent vector.
 ``tanh_mean`` squashes the mean into (-1, 1) (the paper's Hopper code).
+:class:`EnsemblePolicy` is several such policies acting as one (``PolicyArch.members``).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import torch
@@ -16,7 +17,7 @@ from torch import nn
 from torch.distributions import Normal
 
 from pomil.nn.codes import CODE_PRIORS
-from pomil.nn.encoders import make_encoder
+from pomil.nn.encoders import EnsembleEncoder, make_encoder
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,8 @@ class PolicyArch:
     encoder's window in steps (ignored by the others); ``obs_delta`` and
     ``prev_action``: what the encoder sees of each step (``pomil.nn.encoders.InputView``).
     ``num_codes``: width of the code input, K one-hot codes or the dimension d of a continuous
-    code (``code_kind``), drawn from ``code_prior`` (``pomil.nn.codes``; continuous codes only)."""
+    code (``code_kind``), drawn from ``code_prior`` (``pomil.nn.codes``; continuous codes only).
+    ``members``: policies of this architecture acting as one (:class:`EnsemblePolicy`; 1: one policy)."""
 
     obs_dim: int
     act_dim: int
@@ -41,8 +43,11 @@ class PolicyArch:
     prev_action: bool = True
     code_kind: str = "discrete"
     code_prior: str = "uniform"
+    members: int = 1
 
     def __post_init__(self) -> None:
+        if self.members < 1:
+            raise ValueError(f"members must be at least 1, got {self.members}")
         if self.code_kind not in ("discrete", "continuous"):
             raise ValueError(f"code_kind must be 'discrete' or 'continuous', got {self.code_kind!r}")
         if self.code_prior not in CODE_PRIORS:
@@ -54,15 +59,15 @@ class PolicyArch:
 
     def to_dict(self) -> dict[str, Any]:
         """The fields; ``context`` only for the attention encoder, ``obs_delta`` and ``prev_action``
-        only when not their defaults, ``code_kind`` and ``code_prior`` only for continuous codes (so
-        that other policies' checkpoints are as before these existed; a checkpoint without them
-        loads with the defaults: discrete codes)."""
+        only when not their defaults, ``code_kind`` and ``code_prior`` only for continuous codes,
+        ``members`` only for an ensemble (so that other policies' checkpoints are as before these existed;
+        a checkpoint without them loads with the defaults: discrete codes, one policy)."""
         d = asdict(self)
         if self.encoder != "attention":
             del d["context"]
         if not self.continuous_codes:
             del d["code_kind"], d["code_prior"]
-        for key, default in (("obs_delta", False), ("prev_action", True)):
+        for key, default in (("obs_delta", False), ("prev_action", True), ("members", 1)):
             if d[key] == default:
                 del d[key]
         return d
@@ -115,7 +120,7 @@ class GaussianPolicy(nn.Module):
 
     def dist_every_code(self, features: torch.Tensor) -> Normal:
         """The action distribution under each of the K codes: batch shape (K, *features.shape[:-1], act_dim)."""
-        if self.code_embed is None or self.arch.continuous_codes:
+        if not self.arch.num_codes or self.arch.continuous_codes:
             raise ValueError("this policy has no discrete latent codes")
         k = self.arch.num_codes
         lead = features.shape[:-1]
@@ -126,6 +131,36 @@ class GaussianPolicy(nn.Module):
         """The action distribution under each of the K codes for a (T, N) block:
         batch shape (K, T, N, act_dim).  The encoder runs once (the code enters after it)."""
         return self.dist_every_code(self.features(obs, prev_actions, h0, starts)[0])
+
+
+class EnsemblePolicy(GaussianPolicy):
+    """``arch.members`` Gaussian policies acting as one: each member keeps its own encoder state and reads
+    the same observations and previous actions (those carried out: the ensemble's), and the ensemble's mean
+    action is the average of the members' means (after ``tanh_mean``), under the ensemble's own state-independent
+    log std.  Its features and state are the members' side by side (:class:`pomil.nn.encoders.EnsembleEncoder`),
+    so it runs wherever a :class:`GaussianPolicy` does.  ``members[i]`` is member i as a policy of its own: the
+    warm start clones each on its own (``pomil.algos.warm_start.clone_members``)."""
+
+    def __init__(self, arch: PolicyArch) -> None:
+        nn.Module.__init__(self)
+        self.arch = arch
+        one = replace(arch, members=1)
+        first = GaussianPolicy(one)
+        with torch.random.fork_rng(devices=[]):  # the run's random numbers go on as after one policy
+            rest = [GaussianPolicy(one) for _ in range(arch.members - 1)]
+        self.members = nn.ModuleList([first, *rest])
+        self.encoder = EnsembleEncoder([p.encoder for p in self.members])
+        self.log_std = nn.Parameter(torch.full((arch.act_dim,), float(arch.log_std_init)))
+
+    def dist(self, features: torch.Tensor, codes: torch.Tensor | None = None) -> Normal:
+        parts = features.split(self.encoder.feature_sizes, dim=-1)
+        mean = torch.stack([p.dist(f, codes).mean for p, f in zip(self.members, parts, strict=True)]).mean(0)
+        return Normal(mean, self.log_std.exp().expand_as(mean), validate_args=False)
+
+
+def make_policy(arch: PolicyArch) -> GaussianPolicy:
+    """The policy of an architecture: one :class:`GaussianPolicy`, or an :class:`EnsemblePolicy` of ``members``."""
+    return EnsemblePolicy(arch) if arch.members > 1 else GaussianPolicy(arch)
 
 
 def shift_actions(actions: torch.Tensor) -> torch.Tensor:
