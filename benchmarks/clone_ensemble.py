@@ -1,12 +1,12 @@
 """Several warm starts of one draw acting as one policy: at each step the members' mean actions are averaged.
 
-A probe of what an ensemble of clones would score, not a learner pomil ships. Each member is a run's checkpoint
-trained on the same demonstrations (e.g. ``pomil train infogail-pomdp --iterations 0`` from several seeds on one
-draw). The members' codes are aligned without the environment's reward: each member assigns every demonstration
-episode its most likely code (the mixture's balanced assignment, as the hand-over's distance takes it), and each
-member's codes are permuted to agree most with the first member's. Every member keeps its own recurrent state and
-sees the averaged action as its previous one. The ensemble is scored as ``pomil evaluate --json`` scores one policy
-(deterministic episodes, each task's matched code), with the alignment added to the JSON.
+The probe behind ``--policy-members`` (an ensemble trained within one run): here each member is a separate run's
+checkpoint trained on the same demonstrations (e.g. ``pomil train infogail-pomdp --iterations 0`` from several seeds on
+one draw). The members' codes are aligned without the environment's reward, as ``--policy-members`` renames them: each
+member assigns every demonstration episode its most likely code (the mixture's balanced assignment), and each member's
+codes are permuted to agree most with the first member's (``pomil.algos.warm_start.code_renaming``). Every member keeps
+its own recurrent state and sees the averaged action as its previous one. The ensemble is scored as ``pomil evaluate
+--json`` scores one policy (deterministic episodes, each task's matched code), with the alignment added to the JSON.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/clone_ensemble.py --demos D --demos-per-mode 4 --seed S \\
         --eval-seed 1000+S R1 R2 R3
@@ -15,7 +15,6 @@ sees the averaged action as its previous one. The ensemble is scored as ``pomil 
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 from dataclasses import replace
@@ -24,7 +23,7 @@ import numpy as np
 import torch
 
 from pomil import TrainedPolicy
-from pomil.algos.warm_start import balanced_responsibilities, demonstration_pass
+from pomil.algos.warm_start import code_renaming, most_likely_codes
 from pomil.data import load_training_demos
 from pomil.envs import executed_actions_fn
 from pomil.errors import PomilError
@@ -51,20 +50,14 @@ class Ensemble:
         return action
 
 
-def code_assignment(policy: GaussianPolicy, expert, expert_prev: torch.Tensor) -> np.ndarray:
-    """Each demonstration episode's code under ``policy`` (balanced over codes), (E,)."""
-    ll, _ = demonstration_pass(policy, expert, expert_prev)
-    return balanced_responsibilities(ll).argmax(0).cpu().numpy()
-
-
 def align(assignments: list[np.ndarray], num_codes: int) -> list[list[int]]:
     """Per member, the permutation p (ensemble code c -> the member's code p[c]) under which its assignment of the
     episodes agrees most with the first member's (the first member's own: the identity)."""
-    if num_codes > 6:
-        raise PomilError(f"aligning {num_codes} codes tries {num_codes}! permutations: at most 6 codes")
-    first = assignments[0]
-    return [list(max(itertools.permutations(range(num_codes)),
-                     key=lambda p: int((np.asarray(p)[first] == a).sum()))) for a in assignments]
+    first, out = torch.as_tensor(assignments[0]), []
+    for a in assignments:
+        renaming = code_renaming(first, torch.as_tensor(a), num_codes).tolist()  # member code j -> ensemble code
+        out.append(sorted(range(num_codes), key=lambda j: renaming[j]))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         expert = replace(expert, actions=executed_actions_fn(env_id, env_kwargs)(expert.actions))
         prev = shift_actions(expert.actions)
         k = max(first.num_codes, 1)
-        codes = (align([code_assignment(m.policy, expert, prev) for m in members], k) if first.num_codes > 1
+        codes = (align([most_likely_codes(m.policy, expert, prev).numpy() for m in members], k) if first.num_codes > 1
                  else [list(range(k))] * len(members))
         scores = evaluate_tasks(Ensemble(members, codes), reference_of(demos.metadata), args.episodes_per_code,
                                 seed=args.eval_seed)
