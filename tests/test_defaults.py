@@ -242,6 +242,42 @@ def test_long_episodes_cut_the_episode_counts_to_the_step_caps(capsys):
     assert sized_for_episodes(cfg, 1000, window=128).warm_start_batch == 64  # 64 windows: 8,192 steps
 
 
+def test_few_demonstrations_clone_three_policies_acting_as_one(capsys, demos_path, tmp_path):
+    from pomil.algos.warm_start import ENSEMBLE_MEMBERS, members_for_demonstrations
+    from pomil.training import load_checkpoint
+
+    cfg = AdversarialConfig()
+    assert (cfg.policy_members, ENSEMBLE_MEMBERS) == (0, 3)  # auto
+
+    def members(c=cfg, lengths=(1000,) * 8, window=128, recurrent=True, mixture=True):
+        return members_for_demonstrations(c, list(lengths), window, recurrent=recurrent, mixture=mixture).policy_members
+
+    # four standard-Hopper episodes per mode (64 windows), one or four circle episodes per mode: an ensemble of 3
+    assert members() == 3
+    assert "64 128-step windows of demonstrations: policy_members auto -> 3" in capsys.readouterr().err
+    assert members(lengths=[33] * 2, window=0) == members(lengths=[33] * 8, window=0) == 3
+    # sets larger than one batch (11 standard-Hopper episodes per mode, the shipped sets, the suite's 200 circle
+    # episodes), a feed-forward policy, random codes, restarts, no warm start or a shared belief: one policy
+    capsys.readouterr()
+    for lengths, window in (([1000] * 22, 128), ([128] * 400, 0), ([33] * 200, 0), ([33] * 65, 0)):
+        assert members(lengths=lengths, window=window) == 1
+    assert members(recurrent=False) == members(mixture=False) == 1
+    for key, value in (("warm_start_restarts", 2), ("warm_start_iterations", 0), ("belief", "shared")):
+        assert members(dataclasses.replace(cfg, **{key: value})) == 1, key
+    assert capsys.readouterr().err == ""
+    # an explicit value stays, and the resolved one is what --resume reads back
+    assert members(dataclasses.replace(cfg, policy_members=1)) == 1
+    assert members(dataclasses.replace(cfg, policy_members=5), lengths=[33] * 200, window=0) == 5
+    # a run records it in config.json: the suite's circles (200 episodes) clone one policy, a draw of one per mode three
+    small = dict(demos=str(demos_path), iterations=0, hidden_size=8, warm_start_iterations=2,
+                 posterior_init_iterations=1, eval_every=0, progress=False)
+    for per_mode, expected in ((0, 1), (1, 3)):
+        out = tmp_path / f"n{per_mode}"
+        train_adversarial(AdversarialConfig(out=str(out), demos_per_mode=per_mode, **small))
+        assert json.loads((out / "config.json").read_text())["policy_members"] == expected
+        assert load_checkpoint(out / "checkpoint.pt")["policy_arch"].get("members", 1) == expected
+
+
 def test_few_demonstrations_cut_the_cloning_batch_to_a_quarter_of_them(capsys):
     from pomil.algos.warm_start import MIN_CLONING_BATCH, sized_for_demonstrations
 

@@ -312,6 +312,8 @@ def saved_config(cls: type, saved: dict[str, Any]) -> dict[str, Any]:
     defaults = {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
     if defaults.get("preset") == AUTO:
         defaults["preset"] = "default"  # a version without presets ran no preset's values (auto resolves to one)
+    if defaults.get("policy_members") == 0:
+        defaults["policy_members"] = 1  # a version without ensembles ran one policy (auto resolves to 1 or 3)
     return {**values, **json.loads(json.dumps({k: v for k, v in defaults.items() if k not in values}))}
 
 

@@ -62,6 +62,7 @@ from pomil.algos.warm_start import (
     demo_nll,
     episodes_within,
     first_step_starts,
+    members_for_demonstrations,
     mixture_assignment,
     most_likely_codes,
     own_random_numbers,
@@ -160,11 +161,14 @@ class NetworkOptions:
     policy_obs_delta: bool = option(False, "the policy (not critic, value or posterior): " + OBS_DELTA_HELP)
     policy_prev_action: bool = option(True, "the policy's encoder: " + PREV_ACTION_HELP)
     log_std_init: float = option(-1.0, "initial log std of the policy", within="(-inf, inf)")
-    policy_members: int = option(1, "policies acting as one (an ensemble): each member has its own encoder and is "
+    policy_members: int = option(0, "policies acting as one (an ensemble): each member has its own encoder and is "
                                     "cloned in the warm start from its own initialisation and batches, its codes "
                                     "renamed to agree with the first member's on the demonstrations; the ensemble "
                                     "acts with the mean of the members' mean actions and one log std, and the "
-                                    "adversarial phase trains it as one policy (1: one policy)", within="[1, inf)")
+                                    "adversarial phase trains it as one policy (1: one policy; 0: auto, 3 where the "
+                                    "demonstrations fit in one warm_start_batch and the policy is recurrent with the "
+                                    "mixture warm start, else 1: pomil docs method, \"Policies acting as one\")",
+                                 within="[0, inf)")
     tanh_mean: bool = option(False, "squash the policy mean with tanh (the paper's Hopper code)")
 
 @dataclass(frozen=True)
@@ -541,7 +545,7 @@ def policy_arch(cfg: AdversarialConfig, obs_dim: int, act_dim: int, num_codes: i
     enc = cfg.belief_encoder if LEARNERS[cfg.learner].recurrent else "mlp"
     return PolicyArch(obs_dim, act_dim, enc, cfg.hidden_size, num_codes, cfg.log_std_init, cfg.tanh_mean,
                       cfg.attention_context, cfg.policy_obs_delta, cfg.policy_prev_action, cfg.code_kind,
-                      cfg.code_prior, cfg.policy_members)
+                      cfg.code_prior, max(cfg.policy_members, 1))  # auto unresolved (0): one policy
 
 
 def build_modules(cfg: AdversarialConfig, obs_dim: int, act_dim: int, *, num_codes: int,
@@ -1066,6 +1070,8 @@ def train_adversarial(cfg: AdversarialConfig, resume: bool = False) -> Path:
     window = cloning_window(cfg, longest, uses_mixture(cfg, int(LEARNERS[cfg.learner].codes)))
     cfg = sized_for_episodes(cfg, longest, window=window)
     demos, env_id, env_kwargs = _training_demos(cfg)
+    cfg = members_for_demonstrations(cfg, demos.episode_lengths, window, recurrent=LEARNERS[cfg.learner].recurrent,
+                                     mixture=uses_mixture(cfg, int(LEARNERS[cfg.learner].codes)))
     cfg = sized_for_demonstrations(cfg, demos.episode_lengths, window)
     with RunLoop(cfg, algo=cfg.learner, resume=resume, hints=divergence_hints(cfg)) as loop:
         env_info, evaluate, env, execute = _environment(cfg, demos, env_id=env_id, env_kwargs=env_kwargs,

@@ -473,6 +473,39 @@ MIN_CLONING_BATCH = 8
 (:func:`sized_for_demonstrations`)."""
 
 
+def cloning_units(lengths: Sequence[int], window: int) -> int:
+    """What a cloning batch draws from episodes of ``lengths`` steps: their windows of ``window`` steps, or with
+    ``window`` 0 the whole episodes."""
+    return int(sum(math.ceil(int(n) / window) for n in lengths)) if window else len(lengths)
+
+
+ENSEMBLE_MEMBERS = 3
+"""The ensemble's members where ``policy_members`` is auto and the demonstrations are few
+(:func:`members_for_demonstrations`)."""
+
+
+def members_for_demonstrations(cfg: Any, lengths: Sequence[int], window: int, *, recurrent: bool,
+                               mixture: bool) -> Any:
+    """``cfg`` with ``policy_members`` auto (0) resolved: an ensemble of :data:`ENSEMBLE_MEMBERS` where all the
+    demonstrations' cloning units (:func:`cloning_units`) fit in one ``warm_start_batch`` (the sets whose batch
+    ``sized_for_demonstrations`` cuts: four standard-Hopper episodes per mode, up to 64 episodes of circles or of the
+    paper's Hopper), for a recurrent policy cloned by the codes' mixture from one initialisation with beliefs of its
+    own (``belief`` separate or policy); otherwise one policy.
+    With few demonstrations one clone's initialisation and batches decide much of what it does, and three clones
+    acting as one reach the bar in more draws than one (docs/method.md, "Policies acting as one").  With a note on
+    stderr when it is an ensemble.  An explicit ``policy_members`` is kept (``--resume`` reads the resolved one)."""
+    if cfg.policy_members:
+        return cfg
+    units = cloning_units(lengths, window)
+    few = (units <= cfg.warm_start_batch and recurrent and mixture and cfg.warm_start_restarts == 1
+           and cfg.warm_start_iterations > 0 and cfg.belief in ("separate", "policy"))
+    if few:
+        print(f"pomil: note: {units} {f'{window}-step windows' if window else 'episodes'} of demonstrations: "
+              f"policy_members auto -> {ENSEMBLE_MEMBERS} (few demonstrations: {ENSEMBLE_MEMBERS} policies cloned "
+              "apart act as one)", file=sys.stderr)
+    return replace(cfg, policy_members=ENSEMBLE_MEMBERS if few else 1)
+
+
 def sized_for_demonstrations(cfg: Any, lengths: Sequence[int], window: int) -> Any:
     """``cfg`` with ``warm_start_batch`` cut to 1/``warm_start_batch_share`` of the units the cloning batch draws from
     episodes of ``lengths`` steps (their windows of ``window`` steps, or with ``window`` 0 the whole episodes), never
@@ -481,7 +514,7 @@ def sized_for_demonstrations(cfg: Any, lengths: Sequence[int], window: int) -> A
     same data; a quarter a step clones forward better in half the time.  Eleven per mode (172 windows) clone forward
     worse at a quarter (43) than at 64, so sets larger than one batch keep it (docs/hopper.md, "How much a cloning
     step draws"): the shipped sets, and five or more standard-Hopper episodes per mode."""
-    units = int(sum(math.ceil(int(n) / window) for n in lengths)) if window else len(lengths)
+    units = cloning_units(lengths, window)
     if not cfg.warm_start_batch_share or units > cfg.warm_start_batch:
         return cfg
     batch = min(cfg.warm_start_batch, max(MIN_CLONING_BATCH, units // cfg.warm_start_batch_share))
