@@ -32,9 +32,7 @@ _spec.loader.exec_module(ch)
 # shared warm-start posterior loop after it (compared with OMP_NUM_THREADS=1), then recorded as CI runs them (torch's
 # default of 2 threads on 2 cores: other floats than 1 thread, hence the thread count in the key). The AMD entries
 # were recorded and passed CI before the key named threads: CI's 2. The AVX2 AMD entries: recorded at a7ab771 and
-# after it, equal, with torch's default threads (the AVX512 AMD's hashes, but GAIL's). The AMD EPYC family 25
-# model 17 entries: recorded with the code of 2583dc0 and of the ensemble change after it, equal (policy_members auto
-# keeps one policy on these runs' demonstrations).
+# after it, equal, with torch's default threads (the AVX512 AMD's hashes, but GAIL's).
 
 RECORDED = {
     "torch 2.13.0+cpu AVX2 / AMD EPYC family 25 model 1 / 2 threads": {
@@ -60,14 +58,6 @@ RECORDED = {
         "hopper-infogail-pomdp": "10a8bad423a4a7f793e4bf1972aa6a6674fcc7c6ddd18b95317027042309efbf",
         "circles-bc": "d9ec3bed03ae098a522f99ec3d1c698f65347d12617100235a80d5df9078de5f",
         "hopper-expert": "975bd1917acdd9c9a6916267564189dab3b852884de0c6f37ccdd621ae7e6766",
-    },
-    "torch 2.13.0+cpu AVX512 / AMD EPYC family 25 model 17 / 2 threads": {
-        "circles-infogail-pomdp": "bdf30e403610bb334f2292ba24c6cce04c0262a48ff21fd72f335beabe5424c6",
-        "circles-paper-text-window": "da98db0e4c68d8d6ead9e8c6e15575743a6d4dc21666b3bf6553fad93690207c",
-        "circles-gail": "a200b67e295f46ddbc5b5f775532b90f139b6cc14039fc4755af991de7ed59cb",
-        "hopper-infogail-pomdp": "1b937a1b7203a767f3134ded03640877be6b5d7d56b3036ea51bfa9f0e6051c2",
-        "circles-bc": "14b0acf6a0ffdc85cf53bd02bf1ec77b50e9e4e2c2356acf3713ffe7072efcbe",
-        "hopper-expert": "679351763f262407ef518427eb86d5f61edc8e23bcc54c10059d9f29191292a9",
     },
 }
 RECORDED_METRICS = {
@@ -95,20 +85,19 @@ RECORDED_METRICS = {
         "circles-bc": "3d7c16f9dfec4f3d5f4227dd19df8f542cfd1ddfebe51e38d06d857777fa70b6",
         "hopper-expert": "fecf3a253d52767016162bc361c4cc1f7425c5f8f5098583b6f1fbb453758a97",
     },
-    "torch 2.13.0+cpu AVX512 / AMD EPYC family 25 model 17 / 2 threads": {
-        "circles-infogail-pomdp": "650478d0cbe650277694147c5631cb1e6d30a17e3a055b62a3a1dc9a4de207ad",
-        "circles-paper-text-window": "b3973826025a1397da86cc172e73067732b97275850169170dc6d505fd0b7297",
-        "circles-gail": "4231ea2c7abe98377df7c2a6280374bb280dd28f889ffc8a841e3f53602bc6b3",
-        "hopper-infogail-pomdp": "c48c1a36f6dd0f4d1ded22de4c46924c98057a98ab6b6f250ef947b075961074",
-        "circles-bc": "2f4f6828f07b0017a13e432ff63ae113b1ef6cf24b90a95885fc60e4ccf6a15d",
-        "hopper-expert": "684474f5758d1c9adcdb79501297e7ba91e071eaea759d0d51ba66d93afc8e83",
-    },
 }
 
-# The Intel Xeon family 6 model 207 (AVX512) gave model 167's hashes, checkpoints and metrics (recorded at 8af2dd5).
+# Machines that gave another's hashes, checkpoints and metrics: the Intel Xeon family 6 model 207 model 167's
+# (recorded at 8af2dd5); the AMD EPYC family 25 model 17 family 26 model 2's, with the code of 2583dc0 and with the
+# ensemble's after it (policy_members auto keeps one policy on these runs' demonstrations).
+SAME_AS = {
+    "torch 2.13.0+cpu AVX512 / Intel(R) Xeon(R) Processor family 6 model 207 / 2 threads":
+        "torch 2.13.0+cpu AVX512 / Intel(R) Xeon(R) Processor family 6 model 167 / 2 threads",
+    "torch 2.13.0+cpu AVX512 / AMD EPYC family 25 model 17 / 2 threads":
+        "torch 2.13.0+cpu AVX512 / AMD EPYC family 26 model 2 / 2 threads",
+}
 for _recorded in (RECORDED, RECORDED_METRICS):
-    _recorded["torch 2.13.0+cpu AVX512 / Intel(R) Xeon(R) Processor family 6 model 207 / 2 threads"] = _recorded[
-        "torch 2.13.0+cpu AVX512 / Intel(R) Xeon(R) Processor family 6 model 167 / 2 threads"]
+    _recorded.update({machine: _recorded[same] for machine, same in SAME_AS.items()})
 
 
 @pytest.mark.usefixtures("torch_default_threads")  # the thread count the hashes were recorded with
