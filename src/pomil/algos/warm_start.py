@@ -647,8 +647,9 @@ def code_renaming(reference: torch.Tensor, codes: torch.Tensor, num_codes: int) 
     counts = torch.zeros(num_codes, num_codes, dtype=torch.long)
     counts.index_put_((codes.cpu(), reference.cpu()), torch.ones(len(codes), dtype=torch.long), accumulate=True)
     if num_codes <= 7:
+        table = counts.tolist()
         best = max(itertools.permutations(range(num_codes)),
-                   key=lambda p: sum(int(counts[j, p[j]]) for j in range(num_codes)))
+                   key=lambda p: sum(table[j][p[j]] for j in range(num_codes)))
         return torch.tensor(best)
     renaming, left = torch.full((num_codes,), -1), counts.clone()
     for _ in range(num_codes):

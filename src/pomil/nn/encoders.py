@@ -275,21 +275,17 @@ class EnsembleEncoder(nn.Module):
 
     def __init__(self, encoders: list[nn.Module]) -> None:
         super().__init__()
-        self._parts = tuple(encoders)  # a tuple: not a submodule
+        self.parts = tuple(encoders)  # a tuple: not a submodule
         self.out_size = sum(e.out_size for e in encoders)
         self.feature_sizes = [e.out_size for e in encoders]
         self.state_sizes = [e.initial_state(1).shape[-1] for e in encoders]
 
-    @property
-    def parts(self) -> tuple[nn.Module, ...]:
-        return self._parts
-
     def initial_state(self, batch: int, device: torch.device | str | None = None) -> torch.Tensor:
-        return torch.cat([e.initial_state(batch, device) for e in self._parts], dim=-1)
+        return torch.cat([e.initial_state(batch, device) for e in self.parts], dim=-1)
 
     def _each(self, method: str, obs, prev, h, start) -> tuple[torch.Tensor, torch.Tensor]:
         outs = [getattr(e, method)(obs, prev, part, start)
-                for e, part in zip(self._parts, h.split(self.state_sizes, dim=-1), strict=True)]
+                for e, part in zip(self.parts, h.split(self.state_sizes, dim=-1), strict=True)]
         return torch.cat([f for f, _ in outs], dim=-1), torch.cat([s for _, s in outs], dim=-1)
 
     def step(self, obs, prev_action, h, start):
